@@ -1,0 +1,69 @@
+"""Plain result types shared by the core, the node and offline processing (no ROS)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+class InputError(ValueError):
+    """A frame the pipeline cannot use. `reason` is a short machine-readable code
+    (e.g. 'encoding', 'size_mismatch', 'no_valid_depth', 'no_person', 'bad_intrinsics',
+    'too_large', 'no_camera_info'); str(err) is the human-readable message."""
+
+    def __init__(self, reason: str, message: str):
+        super().__init__(message)
+        self.reason = reason
+
+
+@dataclass
+class BodyParams:
+    """Fitted body-model parameters (numpy, float32), camera frame.
+
+    pose: (P, 3) axis-angle per fitted joint (model frame, see body.base);
+    shape: (S,); global_orient: (3,) axis-angle; transl: (3,) metres.
+    """
+
+    pose: np.ndarray
+    shape: np.ndarray
+    global_orient: np.ndarray
+    transl: np.ndarray
+
+
+@dataclass
+class PersonResult:
+    """One reconstructed person.
+
+    Attributes:
+        params: fitted parameters.
+        vertices: (V, 3) float32 fitted mesh, camera frame, metres.
+        joints: (J, 3) float32, order of the body model's joint_names.
+        bbox: (u0, v0, u1, v1) crop in full-image pixels.
+        mask: (H, W) bool, this person's pixels in the full image.
+        residual_m: median point-to-correspondence distance after fitting (metres).
+        num_points: points used for fitting.
+    """
+
+    params: BodyParams
+    vertices: np.ndarray
+    joints: np.ndarray
+    bbox: tuple[int, int, int, int]
+    mask: np.ndarray
+    residual_m: float
+    num_points: int
+    tracked: bool = False
+
+
+@dataclass
+class FrameResult:
+    """Everything the pipeline returns for one depth frame.
+
+    Attributes:
+        persons: most central person first (may be empty: no person found).
+        labels: (H, W) uint8 part class ids at input resolution (0 = background).
+        timings_ms: stage -> milliseconds (preprocess, network, correspondence, fit, total).
+    """
+
+    persons: list[PersonResult]
+    labels: np.ndarray
+    timings_ms: dict[str, float] = field(default_factory=dict)
