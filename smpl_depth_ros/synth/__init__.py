@@ -1,0 +1,1 @@
+"""Synthetic depth data with exact ground truth (no ROS)."""
