@@ -162,12 +162,17 @@ class AnnyBody(BodyModel):
         heads = self.template_heads + torch.einsum('ba,ajk->bjk', c, self.heads_blendshapes)
         return verts, heads
 
-    def pose_rest(self, rest_vertices, rest_heads, rot, vertex_ids=None):
+    def skeleton_pose(self, rot, rest_heads):
+        """World rotations G (B, Jb, 3, 3) and posed heads x (B, Jb, 3) of every bone,
+        from fitted-joint rotations rot (B, J, 3, 3); unfitted bones stay at rest."""
         B = rot.shape[0]
         eye = torch.eye(3, dtype=rot.dtype, device=rot.device)
         full = eye.expand(B, len(self.bone_names), 3, 3).clone()
         full[:, self.joint_bones] = rot
-        G, x = lbs.forward_kinematics(full, rest_heads, self.bone_parents, self._levels)
+        return lbs.forward_kinematics(full, rest_heads, self.bone_parents, self._levels)
+
+    def pose_rest(self, rest_vertices, rest_heads, rot, vertex_ids=None):
+        G, x = self.skeleton_pose(rot, rest_heads)
         if vertex_ids is None:
             w, idx = self.skin_weights, self.skin_indices
         else:

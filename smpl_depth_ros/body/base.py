@@ -157,6 +157,26 @@ class BodyModel(torch.nn.Module):
         """(V, 3) mean-shape T-pose template in the canonical frame (for the embedding)."""
         raise NotImplementedError
 
+    def rest_linear(self, shape: torch.Tensor, vertex_ids: torch.Tensor | None = None):
+        """First-order model of the rest geometry around `shape` (1, S).
+
+        Returns rest vertices (N, 3), their shape Jacobian (N, 3, S), rest heads (Jb, 3) and
+        their Jacobian (Jb, 3, S). Exact for SMPL (linear in betas) and within a linear
+        piece of anny's phenotype mapping. Default: one-sided finite differences, batched.
+        """
+        eps = 1e-3
+        S = shape.shape[1]
+        lo_hi = self.shape_bounds
+        s0 = shape[0]
+        step = torch.full_like(s0, eps)
+        if lo_hi is not None:  # step inwards near the upper bound
+            step = torch.where(s0 + eps > lo_hi[1], -step, step)
+        batch = torch.cat([s0[None], s0[None] + torch.diag(step)], 0)
+        rv, heads = self.rest(batch, vertex_ids)
+        A = ((rv[1:] - rv[:1]) / step[:, None, None]).permute(1, 2, 0)
+        B = ((heads[1:] - heads[:1]) / step[:, None, None]).permute(1, 2, 0)
+        return rv[0], A, heads[0], B
+
     # -- helpers shared by all backends -----------------------------------------------
     def zero_params(self, batch_size: int = 1) -> dict[str, torch.Tensor]:
         """Neutral parameters: rest pose, mean shape, at the origin."""

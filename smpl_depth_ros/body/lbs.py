@@ -83,3 +83,24 @@ def skin(rest_vertices: torch.Tensor, G: torch.Tensor, x: torch.Tensor, heads: t
     else:
         Av = (A[:, indices] * weights[None, :, :, None, None]).sum(2)  # (B, V, 3, 4)
     return (Av[..., :3] @ rest_vertices[..., None])[..., 0] + Av[..., 3]
+
+
+def forward_kinematics_tangent(G: torch.Tensor, dheads: torch.Tensor, parents: torch.Tensor,
+                               levels: list[torch.Tensor]) -> torch.Tensor:
+    """Derivative of the posed heads w.r.t. the rest heads, rotations held fixed.
+
+    dx_c = dx_p + G_p (dh_c - dh_p), dx_root = dh_root.
+
+    Args:
+        G: (J, 3, 3) world rotations (from forward_kinematics, batch removed).
+        dheads: (J, 3, S) rest-head tangents for S directions.
+
+    Returns:
+        (J, 3, S) posed-head tangents.
+    """
+    dx = torch.empty_like(dheads)
+    dx[levels[0]] = dheads[levels[0]]
+    for lv in levels[1:]:
+        p = parents[lv]
+        dx[lv] = dx[p] + G[p] @ (dheads[lv] - dheads[p])
+    return dx

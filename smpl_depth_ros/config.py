@@ -1,0 +1,51 @@
+"""Frozen configuration dataclasses: the one place that holds defaults (no ROS).
+
+The node declares its ROS parameters from these, `config/reconstructor.yaml` mirrors them,
+and the CLI tools map argparse flags onto them.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields, replace
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """Model fitting (paper Eq. 3-4) and solver settings."""
+
+    lambda_data: float = 1.0          # lambda_D
+    lambda_pose: float = 1e-3         # lambda_theta: joint-limit prior weight (per rad^2)
+    lambda_pose_l2: float = 1e-7      # weak pull of every joint towards rest
+    lambda_shape: float = 1e-6        # lambda_beta (per squared standard deviation)
+    gm_sigma: float = 0.05            # Geman-McClure scale (metres)
+    solver: str = 'fast'              # 'fast' (default) | 'lbfgs' (the paper's reference)
+    iterations: int = 12              # cold-start iterations of the fast solver
+    tracking_iterations: int = 4      # warm-start iterations
+    lbfgs_iterations: int = 20        # the paper's reference solver
+    lbfgs_lr: float = 0.6
+    max_points: int = 1500            # correspondences kept per frame (random subset)
+    lost_residual_m: float = 0.06     # median residual above which the track is lost
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """Everything the Reconstructor needs; one frozen value per run."""
+
+    backend: str = 'anny'             # 'anny' | 'smpl'
+    model_path: str = ''              # SMPL file (or env SMPL_MODEL_PATH); anny: optional
+    weights_path: str = ''            # '' = the weights shipped for the backend
+    device: str = 'auto'              # 'auto' | 'cpu' | 'cuda'
+    depth_min: float = 0.5            # metres; person search range
+    depth_max: float = 6.0
+    max_persons: int = 1              # persons reconstructed per frame (most central first)
+    min_person_pixels: int = 400
+    tracking: bool = True
+    max_image_pixels: int = 4096 * 4096
+    tracking_max_gap_s: float = 0.5   # reset tracking after a longer gap between frames
+    fit: FitConfig = field(default_factory=FitConfig)
+
+    def with_overrides(self, **kw) -> 'PipelineConfig':
+        """Replace fields; keys of FitConfig may be given too (routed to .fit)."""
+        fit_names = {f.name for f in fields(FitConfig)}
+        fit_kw = {k: kw.pop(k) for k in list(kw) if k in fit_names}
+        cfg = replace(self, **kw)
+        return replace(cfg, fit=replace(cfg.fit, **fit_kw)) if fit_kw else cfg
