@@ -79,8 +79,11 @@ def find_model_file(path: str | None = None) -> str:
 
 
 class _ChumpyStandIn:
-    """Replaces any chumpy class when unpickling: keeps the pickled state and exposes the
-    array a plain `chumpy.Ch` stores in its `x` term (as `.r` and `np.asarray(obj)`)."""
+    """Stand-in for every chumpy class when unpickling (chumpy itself is not needed).
+
+    Keeps the pickled state and exposes the array a plain `chumpy.Ch` stores in its `x`
+    term, as `.r` and through `np.asarray(obj)`.
+    """
 
     def __setstate__(self, state):
         if isinstance(state, tuple):  # (dict state, slot state)
@@ -189,9 +192,12 @@ class SMPLBody(BodyModel):
         dtype: floating dtype of the buffers.
 
     Buffers: faces (F, 3), template_vertices (V, 3), shapedirs (V, 3, 10),
-    posedirs (V, 3, 207), skin_weights (V, 24), J_regressor (24, V), template_joints
-    (24, 3) and joint_shapedirs (24, 3, 10) (= J_regressor applied to the former two),
-    part_labels, valid_vertices, canonical_rotation, shape_mean, shape_std.
+    posedirs (V, 3, 207), skin_weights (V, 24) dense (`skin_indices` is None),
+    J_regressor (24, V), template_joints (24, 3) and joint_shapedirs (24, 3, 10)
+    (= J_regressor applied to the former two), part_labels, valid_vertices,
+    canonical_rotation, shape_mean, shape_std. Like the anny backend it exposes its
+    skeleton as bones (`bone_names`, `bone_parents`, `joint_bones`, `skeleton_pose`); for
+    SMPL every bone is a fitted joint.
     """
 
     name = 'smpl'
@@ -229,9 +235,11 @@ class SMPLBody(BodyModel):
 
         self.joint_names = GENERIC_JOINTS
         self.shape_names = tuple(f'beta{i}' for i in range(shapedirs.shape[2]))
+        self.bone_names = self.joint_names
         self.register_buffer('joint_parents', torch.tensor(parents), persistent=False)
-        self.register_buffer('_fk_parents', torch.tensor([max(p, 0) for p in parents]),
+        self.register_buffer('bone_parents', torch.tensor([max(p, 0) for p in parents]),
                              persistent=False)
+        self.register_buffer('joint_bones', torch.arange(NUM_JOINTS), persistent=False)
         self._levels = lbs.kinematic_levels(parents)
 
         t = torch.from_numpy
@@ -240,6 +248,7 @@ class SMPLBody(BodyModel):
         self.register_buffer('shapedirs', t(np.ascontiguousarray(shapedirs)), persistent=False)
         self.register_buffer('posedirs', t(np.ascontiguousarray(posedirs)), persistent=False)
         self.register_buffer('skin_weights', t(weights), persistent=False)
+        self.skin_indices = None  # dense weights over all 24 joints
         self.register_buffer('J_regressor', t(J_reg), persistent=False)
         # J(beta) = J_regressor (v_template + shapedirs beta), folded (exact: it is linear).
         self.register_buffer('template_joints', t(J_reg @ v_template), persistent=False)
@@ -273,6 +282,31 @@ class SMPLBody(BodyModel):
         joints = self.template_joints + torch.einsum('bs,jks->bjk', shape, self.joint_shapedirs)
         return verts, joints
 
+    def rest_linear(self, shape: torch.Tensor, vertex_ids: torch.Tensor | None = None):
+        """First-order rest geometry at `shape` (1, S); exact, SMPL is linear in betas.
+
+        Returns rest vertices (N, 3), their shapedirs (N, 3, S), rest joints (24, 3) and the
+        joint shapedirs (24, 3, S).
+        """
+        verts, joints = self.rest(shape, vertex_ids)
+        sd = self.shapedirs if vertex_ids is None else self.shapedirs[vertex_ids]
+        return verts[0], sd, joints[0], self.joint_shapedirs
+
+    def skeleton_pose(self, rot: torch.Tensor, rest_heads: torch.Tensor):
+        """FK: rot (B, 24, 3, 3) local, rest_heads (B, 24, 3) -> G (B, 24, 3, 3), x (B, 24, 3)."""
+        return lbs.forward_kinematics(rot, rest_heads, self.bone_parents, self._levels)
+
+    def pose_offsets(self, rot: torch.Tensor, vertex_ids: torch.Tensor | None = None):
+        """Pose-blendshape displacements (B, V|K, 3) for rot (B, 24, 3, 3).
+
+        posedirs applied to vec(R_k - I), k = 1..23, row-major as in SMPL.
+        """
+        B = rot.shape[0]
+        eye = torch.eye(3, dtype=rot.dtype, device=rot.device)
+        feat = (rot[:, 1:] - eye).reshape(B, -1)  # (B, 207)
+        pd = self.posedirs if vertex_ids is None else self.posedirs[vertex_ids]
+        return torch.einsum('bp,vkp->bvk', feat, pd)
+
     def pose_rest(self, rest_vertices, rest_joints, rot, vertex_ids=None):
         """Pose blendshapes, FK and dense LBS.
 
@@ -284,15 +318,9 @@ class SMPLBody(BodyModel):
         Returns:
             vertices (B, V|K, 3), joints (B, 24, 3).
         """
-        B = rot.shape[0]
-        eye = torch.eye(3, dtype=rot.dtype, device=rot.device)
-        feat = (rot[:, 1:] - eye).reshape(B, -1)  # (B, 207), row-major per joint as SMPL
-        if vertex_ids is None:
-            pd, w = self.posedirs, self.skin_weights
-        else:
-            pd, w = self.posedirs[vertex_ids], self.skin_weights[vertex_ids]
-        v_posed = rest_vertices + torch.einsum('bp,vkp->bvk', feat, pd)
-        G, x = lbs.forward_kinematics(rot, rest_joints, self._fk_parents, self._levels)
+        w = self.skin_weights if vertex_ids is None else self.skin_weights[vertex_ids]
+        v_posed = rest_vertices + self.pose_offsets(rot, vertex_ids)
+        G, x = self.skeleton_pose(rot, rest_joints)
         return lbs.skin(v_posed, G, x, rest_joints, w), x
 
     def canonical_vertices(self) -> np.ndarray:

@@ -1,0 +1,1 @@
+"""Dense correspondence network (paper III-B, no ROS)."""

@@ -1,0 +1,153 @@
+"""Training samples for the correspondence network, rendered on the fly (no ROS).
+
+Each sample: a random adult (shape, pose from synth.poses), placed 1-5 m from a random
+camera preset with any yaw and small pitch/roll, a random background (floor, walls,
+clutter; optional), rendered by ray casting directly into the network's S x S crop (the
+virtual camera of a jittered square crop around the projected body, the same crop
+geometry net.preprocess uses at run time), then the sensor noise model. Targets: part
+labels (15 classes) and the normalised canonical coordinates of each pixel's template
+vertex.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from smpl_depth_ros.body.parts import MIRROR, template_embedding
+from smpl_depth_ros.net.preprocess import network_input, square_crop
+from smpl_depth_ros.net.unet import INPUT_SIZE
+from smpl_depth_ros.synth.camera import CAMERAS, Camera
+from smpl_depth_ros.synth.noise import NoiseParams, apply_noise
+from smpl_depth_ros.synth.poses import PoseSampler, placement, sample_shape
+from smpl_depth_ros.synth.render import render_body, sample_background
+
+
+@dataclass(frozen=True)
+class SampleConfig:
+    size: int = INPUT_SIZE
+    noise: bool = True
+    background: float = 0.85         # probability of background geometry
+    depth_range: tuple[float, float] = (1.0, 5.0)
+    crop_jitter: float = 0.08        # crop centre jitter (fraction of the side)
+    crop_scale: tuple[float, float] = (0.95, 1.3)  # crop side / (1.15 x bbox side)
+
+
+def crop_noise_params(scale: float) -> NoiseParams:
+    """Sensor noise expressed in crop pixels: pixel-sized effects shrink by `scale`
+    (sensor pixels per crop pixel), so a crop sees what the sensor would have produced."""
+    k = 1.0 / max(scale, 1.0)
+    return NoiseParams(
+        lateral_base_px=0.8 * k, lateral_angle_px=0.035 * k, lateral_max_px=max(3.0 * k, 1.0),
+        lateral_band_px=int(round(2 * k)), edge_drop_prob=0.5 * k,
+        edge_erode_px=int(2 * k), hole_radius_px=(1, max(1, int(round(3 * k)))),
+        holes_per_frame=4.0 * k * k)
+
+
+class SampleMaker:
+    """Makes (input, labels, coords, coord_mask) training tuples for one body model."""
+
+    def __init__(self, body, cfg: SampleConfig = SampleConfig()):
+        self.body = body
+        self.cfg = cfg
+        self.sampler = PoseSampler(body)
+        self.faces = body.faces_numpy()
+        self.parts = body.part_labels.cpu().numpy()
+        emb = template_embedding(body.canonical_vertices(), self.parts)
+        self.coords = emb[:, :3]
+        self.cameras = [c for c in CAMERAS.values()]
+
+    def __call__(self, rng: np.random.Generator):
+        cfg, body = self.cfg, self.body
+        cam: Camera = self.cameras[rng.integers(len(self.cameras))]
+        pose = self.sampler.sample(rng, 1)
+        shape = sample_shape(body, rng, 1)
+        z = rng.uniform(*cfg.depth_range)
+        # Root inside the frustum (keep most of the body in view).
+        x = rng.uniform(-0.35, 0.35) * z * cam.width / cam.fx
+        y = rng.uniform(-0.2, 0.25) * z * cam.height / cam.fy
+        yaw = rng.uniform(-np.pi, np.pi)
+        pitch, roll = np.deg2rad(rng.uniform(-10, 10, 2))
+        go, tr = placement(body, shape[0], yaw, pitch, roll, np.array([x, y, z]))
+        with torch.no_grad():
+            out = body(torch.as_tensor(pose, dtype=body.dtype),
+                       torch.as_tensor(shape, dtype=body.dtype),
+                       torch.as_tensor(go, dtype=body.dtype)[None],
+                       torch.as_tensor(tr, dtype=body.dtype)[None])
+        V = out.vertices[0].cpu().numpy().astype(np.float64)
+        uv = V[:, :2] / V[:, 2:3] * [cam.fx, cam.fy] + [cam.cx, cam.cy]
+        u0, v0 = uv.min(0)
+        u1, v1 = uv.max(0)
+        side = max(u1 - u0, v1 - v0)
+        s = rng.uniform(*cfg.crop_scale)
+        jit = rng.uniform(-cfg.crop_jitter, cfg.crop_jitter, 2) * side
+        cu, cv = (u0 + u1) / 2 + jit[0], (v0 + v1) / 2 + jit[1]
+        half = side * s / 2
+        crop = square_crop(cu - half, cv - half, cu + half, cv + half, size=cfg.size)
+        Kc = crop.crop_K(cam.K)
+        ccam = Camera(width=cfg.size, height=cfg.size, fx=Kc[0, 0], fy=Kc[1, 1],
+                      cx=Kc[0, 2], cy=Kc[1, 2], name=cam.name + '_crop',
+                      min_range=cam.min_range, max_range=cam.max_range)
+        bg = None
+        if rng.random() < cfg.background:
+            bg = sample_background(rng, cam, out.joints[0, 0].cpu().numpy(), V)
+        r = render_body(V, self.faces, self.parts, ccam, bg)
+        depth, labels, vids = r.depth, r.labels, r.vertex_ids
+        if cfg.noise:
+            nr = apply_noise(depth, r.normals_cos, rng, crop_noise_params(crop.scale), fx=None)
+            depth = nr.depth
+            labels = nr.take(labels, 0)
+            vids = nr.take(vids, -1)
+        body_px = (labels > 0) & (depth > 0)
+        med = float(np.median(depth[body_px])) if body_px.any() else z
+        med += rng.normal(0, 0.03)  # the run-time median comes from a blob, not labels
+        xin = network_input(depth, med)
+        labels = np.where(xin[1] > 0, labels, 0).astype(np.int64)
+        cm = (vids >= 0) & (labels > 0)
+        coords = np.zeros((3, cfg.size, cfg.size), np.float32)
+        coords[:, cm] = self.coords[vids[cm]].T
+        if rng.random() < 0.5:  # mirror augmentation: flip image, swap left/right parts
+            xin, labels, coords, cm = self._mirror(xin, labels, coords, cm)
+        return xin, labels, coords, cm
+
+    def _mirror(self, xin, labels, coords, cm):
+        # A mirrored person is a (different) valid person seen mirrored: swap sides and
+        # mirror the canonical x coordinate (the template is left/right symmetric).
+        xin = xin[:, :, ::-1].copy()
+        labels = MIRROR[labels[:, ::-1]]
+        coords = coords[:, :, ::-1].copy()
+        coords[0] = np.where(cm[:, ::-1], 1.0 - coords[0], 0.0)
+        return xin, labels, coords, cm[:, ::-1].copy()
+
+
+class SyntheticDataset(torch.utils.data.IterableDataset):
+    """Endless stream of samples; each worker has its own seeded generator."""
+
+    def __init__(self, body_factory, seed: int, cfg: SampleConfig = SampleConfig(),
+                 length: int | None = None):
+        self.body_factory = body_factory
+        self.seed = seed
+        self.cfg = cfg
+        self.length = length
+
+    def __iter__(self):
+        info = torch.utils.data.get_worker_info()
+        wid = info.id if info else 0
+        torch.set_num_threads(1)
+        maker = SampleMaker(self.body_factory(), self.cfg)
+        rng = np.random.default_rng([self.seed, wid])
+        n = 0
+        while self.length is None or n < self.length:
+            xin, labels, coords, cm = maker(rng)
+            yield (torch.from_numpy(xin), torch.from_numpy(labels), torch.from_numpy(coords),
+                   torch.from_numpy(cm))
+            n += 1
+
+
+def make_fixed_set(body, n: int, seed: int, cfg: SampleConfig = SampleConfig()):
+    """A fixed validation set: stacked tensors (x, labels, coords, mask)."""
+    maker = SampleMaker(body, cfg)
+    rng = np.random.default_rng(seed)
+    items = [maker(rng) for _ in range(n)]
+    return tuple(torch.from_numpy(np.stack(t)) for t in zip(*items))

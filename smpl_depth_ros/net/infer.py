@@ -1,0 +1,64 @@
+"""Run-time correspondence: the trained network + template-embedding lookup (no ROS)."""
+from __future__ import annotations
+
+import os
+from importlib import resources
+
+import numpy as np
+import torch
+
+from smpl_depth_ros.body.parts import PART_COLORS, EmbeddingIndex, template_embedding
+from smpl_depth_ros.net.unet import build_network
+
+
+def default_weights(backend: str, kind: str = 'double') -> str:
+    return str(resources.files('smpl_depth_ros') / 'data' / f'corr_{backend}_{kind}.pt')
+
+
+class CorrespondenceNet:
+    """Loads the shipped (or given) weights once; maps crops to vertex correspondences.
+
+    Args:
+        body: the body model the weights were trained for.
+        weights: path to a .pt written by train_correspondence ('' = shipped default).
+        device: torch device.
+        color_weight: weight of the part colour in the Eq. 2 lookup (>1 keeps matches
+            inside the predicted part).
+    """
+
+    def __init__(self, body, weights: str = '', device='cpu', color_weight: float = 2.0):
+        path = weights or default_weights(body.name)
+        if not os.path.exists(path):
+            raise FileNotFoundError(
+                f'no correspondence weights at {path}: for the {body.name!r} backend train '
+                f'them with `train_correspondence --backend {body.name} --out {path}` '
+                '(see README), or pass weights_path')
+        ck = torch.load(path, map_location='cpu', weights_only=False)
+        meta = ck.get('meta', {})
+        if meta.get('body_vertices') not in (None, body.num_vertices):
+            raise ValueError(f'weights {path} were trained for a body with '
+                             f'{meta.get("body_vertices")} vertices, this {body.name} model '
+                             f'has {body.num_vertices}')
+        self.meta = meta
+        self.path = path
+        self.net = build_network(meta.get('kind', 'double'))
+        self.net.load_state_dict({k: v.float() for k, v in ck['state_dict'].items()})
+        self.net.eval().to(device)
+        self.device = torch.device(device)
+        parts = body.part_labels.cpu().numpy()
+        self.embedding = template_embedding(body.canonical_vertices(), parts)
+        self.index = EmbeddingIndex(self.embedding, body.valid_vertices.cpu().numpy(),
+                                    color_weight=color_weight)
+
+    @torch.inference_mode()
+    def predict(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(B, 2, S, S) inputs -> labels (B, S, S) uint8, coords (B, 3, S, S) float32."""
+        t = torch.from_numpy(np.ascontiguousarray(x)).to(self.device)
+        logits, coords = self.net(t)
+        return (logits.argmax(1).to(torch.uint8).cpu().numpy(),
+                coords.float().cpu().numpy())
+
+    def lookup(self, labels: np.ndarray, coords: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        """Eq. 2 for the masked pixels of one crop: vertex ids (N,)."""
+        emb = np.concatenate([coords[:, mask].T, PART_COLORS[labels[mask]]], 1)
+        return self.index.query(emb)[0]

@@ -1,0 +1,180 @@
+"""The Reconstructor: depth (H, W) metres + K -> FrameResult (no ROS).
+
+preprocess (find persons, crop) -> double U-Net -> Eq. 2 correspondences -> fit
+(warm-started from the previous frame while the track holds) -> result. The live node and
+offline processing are two thin drivers of this class.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import torch
+
+from smpl_depth_ros.body import load_body_model
+from smpl_depth_ros.config import PipelineConfig
+from smpl_depth_ros.fit import Fitter, backproject  # noqa: F401  (re-exported)
+from smpl_depth_ros.net.infer import CorrespondenceNet
+from smpl_depth_ros.net.preprocess import crop_depth, find_persons, network_input
+from smpl_depth_ros.types import FrameResult, InputError, PersonResult
+
+MIN_BODY_PIXELS = 60  # network-foreground crop pixels needed to attempt a fit
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == 'auto':
+        return torch.device('cuda' if torch.cuda.is_available() else 'cpu')
+    if name == 'cuda' and not torch.cuda.is_available():
+        raise RuntimeError("device 'cuda' requested but torch.cuda.is_available() is False")
+    if name not in ('cpu', 'cuda'):
+        raise ValueError(f"device must be 'auto', 'cpu' or 'cuda', got {name!r}")
+    return torch.device(name)
+
+
+def validate_input(depth: np.ndarray, K: np.ndarray, max_pixels: int) -> np.ndarray:
+    """Check a frame; returns depth as float32 with invalid pixels = 0.
+
+    Raises:
+        InputError with reason 'bad_depth', 'too_large', 'bad_intrinsics' or
+        'no_valid_depth'.
+    """
+    depth = np.asarray(depth)
+    if depth.ndim != 2 or depth.size == 0:
+        raise InputError('bad_depth', f'depth must be a non-empty (H, W) image, got shape '
+                         f'{depth.shape}')
+    if depth.size > max_pixels:
+        raise InputError('too_large', f'depth image {depth.shape[1]}x{depth.shape[0]} exceeds '
+                         f'max_image_pixels={max_pixels}')
+    K = np.asarray(K, dtype=np.float64)
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise InputError('bad_intrinsics', f'camera matrix K is unusable (fx, fy must be > 0): '
+                         f'{K.reshape(-1).tolist() if K.size == 9 else K.shape}')
+    d = np.nan_to_num(depth.astype(np.float32, copy=False), nan=0.0, posinf=0.0, neginf=0.0)
+    if not np.any(d > 0):
+        raise InputError('no_valid_depth', 'depth image has no valid pixel (all zero/NaN)')
+    return d
+
+
+class Reconstructor:
+    """Loads the body model and network once; `process` reconstructs one frame.
+
+    Args:
+        config: PipelineConfig.
+        body: optional pre-built body model (else built from config.backend/model_path).
+    """
+
+    def __init__(self, config: PipelineConfig = PipelineConfig(), body=None):
+        self.config = config
+        self.device = resolve_device(config.device)
+        torch.set_grad_enabled(True)
+        self.body = body if body is not None else load_body_model(
+            config.backend, config.model_path or None, device=self.device)
+        self.net = CorrespondenceNet(self.body, config.weights_path, device=self.device)
+        self.fitter = Fitter(self.body, config.fit)
+        self.faces = self.body.faces_numpy()
+        self._track = None  # (BodyParams, stamp_ns)
+
+    def reset(self) -> None:
+        """Forget the tracking state (next frame is fitted cold)."""
+        self._track = None
+
+    def set_fit_config(self, fit_cfg) -> None:
+        self.config = self.config.with_overrides(**{f: getattr(fit_cfg, f) for f in
+                                                     fit_cfg.__dataclass_fields__})
+        self.fitter = Fitter(self.body, fit_cfg)
+
+    def process(self, depth: np.ndarray, K: np.ndarray, stamp_ns: int | None = None
+                ) -> FrameResult:
+        """Reconstruct the persons in one depth frame.
+
+        Args:
+            depth: (H, W) metres (float; 0/NaN invalid).
+            K: (3, 3) intrinsics of this image.
+            stamp_ns: capture time, for tracking gaps (None: treat as consecutive).
+
+        Returns:
+            FrameResult (persons most central first; labels at input resolution).
+
+        Raises:
+            InputError for unusable frames, with reason 'no_person' when nobody is found.
+        """
+        cfg = self.config
+        t0 = time.perf_counter()
+        d = validate_input(depth, K, cfg.max_image_pixels)
+        K = np.asarray(K, np.float64)
+        crops = find_persons(d, K, cfg.depth_min, cfg.depth_max, cfg.min_person_pixels,
+                             max_persons=max(cfg.max_persons, 1) + 2)
+        t1 = time.perf_counter()
+        labels_full = np.zeros(d.shape, np.uint8)
+        timings = dict(preprocess=(t1 - t0) * 1e3, network=0.0, correspondence=0.0, fit=0.0)
+        if not crops:
+            self.reset()
+            raise InputError('no_person', f'no person found between {cfg.depth_min:.2f} and '
+                             f'{cfg.depth_max:.2f} m')
+        dcrops = [crop_depth(d, c) for c in crops]
+        x = np.stack([network_input(dc, c.median_depth) for dc, c in zip(dcrops, crops)])
+        lab, coords = self.net.predict(x)
+        t2 = time.perf_counter()
+        timings['network'] = (t2 - t1) * 1e3
+        persons = []
+        for i, crop in enumerate(crops):
+            if len(persons) >= cfg.max_persons:
+                break
+            fg = (lab[i] > 0) & (x[i, 1] > 0)
+            if fg.sum() < MIN_BODY_PIXELS:
+                continue
+            tc = time.perf_counter()
+            vids = self.net.lookup(lab[i], coords[i], fg)
+            rr, cc, _ = crop.sample_indices(d.shape)
+            r, c = rr[fg], cc[fg]
+            z = d[r, c].astype(np.float64)
+            pts = np.stack([(c - K[0, 2]) * z / K[0, 0], (r - K[1, 2]) * z / K[1, 1], z],
+                           1).astype(np.float32)
+            tf = time.perf_counter()
+            timings['correspondence'] += (tf - tc) * 1e3
+            fit, tracked = self._fit(pts, vids, stamp_ns, first=not persons)
+            timings['fit'] += (time.perf_counter() - tf) * 1e3
+            mask = self._paste_labels(labels_full, crop, lab[i])
+            persons.append(PersonResult(
+                params=fit.params, vertices=fit.vertices, joints=fit.joints,
+                bbox=(int(crop.u0), int(crop.v0), int(crop.u0 + crop.scale * crop.size),
+                      int(crop.v0 + crop.scale * crop.size)),
+                mask=mask, residual_m=fit.median_residual, num_points=int(len(pts)),
+                tracked=tracked))
+        if not persons:
+            self.reset()
+            raise InputError('no_person', 'person candidates found, but the network '
+                             'segmented no body in them')
+        timings['total'] = (time.perf_counter() - t0) * 1e3
+        return FrameResult(persons=persons, labels=labels_full, timings_ms=timings)
+
+    def _fit(self, pts, vids, stamp_ns, first: bool):
+        cfg = self.config
+        if first and cfg.tracking and self._track is not None:
+            prev, prev_stamp = self._track
+            gap_ok = (stamp_ns is None or prev_stamp is None or
+                      0 <= (stamp_ns - prev_stamp) * 1e-9 <= cfg.tracking_max_gap_s)
+            if gap_ok:
+                fit = self.fitter.fit(pts, vids, init=prev)
+                if fit.median_residual <= cfg.fit.lost_residual_m:
+                    self._track = (fit.params, stamp_ns)
+                    return fit, True
+        fit = self.fitter.fit(pts, vids)
+        if first:
+            self._track = (fit.params, stamp_ns) if cfg.tracking else None
+        return fit, False
+
+    @staticmethod
+    def _paste_labels(labels_full, crop, lab) -> np.ndarray:
+        """Write the crop's labels into the full image inside the person's blob."""
+        if crop.mask is None:
+            return np.zeros(labels_full.shape, bool)
+        r, c = np.nonzero(crop.mask)
+        i = np.clip(((r + 0.5 - crop.v0) / crop.scale).astype(np.int64), 0, crop.size - 1)
+        j = np.clip(((c + 0.5 - crop.u0) / crop.scale).astype(np.int64), 0, crop.size - 1)
+        v = lab[i, j]
+        keep = v > 0
+        labels_full[r[keep], c[keep]] = v[keep]
+        m = np.zeros(labels_full.shape, bool)
+        m[r[keep], c[keep]] = True
+        return m

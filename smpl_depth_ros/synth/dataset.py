@@ -1,0 +1,268 @@
+"""Synthetic depth frames and sequences with exact ground truth (no ROS).
+
+A frame is a posed body (synth.poses) placed 1-5 m in front of a camera, optionally in
+a random room (synth.render.sample_background), ray-cast (synth.render) and optionally
+corrupted by the sensor noise model (synth.noise). Ground truth: per-pixel part labels
+and template vertex ids (following the noisy depth: 0 / -1 where it is invalid), the
+posed mesh and joints in the camera optical frame, and the body parameters.
+
+Everything is a deterministic function of the `numpy.random.Generator` passed in. The
+scene and the noise draw from their own sub-streams, so turning the background or the
+noise off leaves the person unchanged for the same seed.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Iterator
+
+import numpy as np
+import torch
+from scipy.spatial.transform import Rotation
+
+from smpl_depth_ros.body.base import BodyModel
+from smpl_depth_ros.synth import noise as noise_mod
+from smpl_depth_ros.synth import render as render_mod
+from smpl_depth_ros.synth.camera import Camera
+from smpl_depth_ros.synth.poses import (OPTICAL_FROM_CANONICAL, PoseSampler, placement,
+                                        sample_shape)
+
+
+@dataclass(frozen=True)
+class SynthParams:
+    """Scene sampling parameters.
+
+    Attributes:
+        depth_range: (min, max) root depth in metres (also kept 0.3 m inside the
+            camera's range).
+        tilt_deg: pitch and roll are uniform in +-tilt_deg (a tilted camera).
+        camera_height: (min, max) camera height above the floor in metres, used to place
+            the person vertically when that keeps the body in view.
+        seq_key_every: frames between root / yaw keyframes in sequences.
+        seq_step_m: largest root move between two sequence keyframes (metres).
+        seq_yaw_step_deg: largest yaw change between two sequence keyframes.
+        pose_key_every: frames between pose keyframes in sequences.
+        noise: sensor noise parameters.
+        background: scene layout parameters.
+    """
+
+    depth_range: tuple[float, float] = (1.0, 5.0)
+    tilt_deg: float = 10.0
+    camera_height: tuple[float, float] = (0.4, 2.2)
+    seq_key_every: int = 45
+    seq_step_m: float = 1.0
+    seq_yaw_step_deg: float = 60.0
+    pose_key_every: int = 15
+    noise: noise_mod.NoiseParams = field(default_factory=noise_mod.NoiseParams)
+    background: render_mod.BackgroundParams = field(
+        default_factory=render_mod.BackgroundParams)
+
+
+def _depth_range(camera: Camera, p: SynthParams) -> tuple[float, float]:
+    lo = max(p.depth_range[0], camera.min_range + 0.3)
+    hi = min(p.depth_range[1], camera.max_range - 0.3)
+    if hi < lo:
+        raise ValueError(f'depth range {p.depth_range} does not fit camera range '
+                         f'[{camera.min_range}, {camera.max_range}]')
+    return lo, hi
+
+
+def _forward(body: BodyModel, pose, shape, go, transl) -> tuple[np.ndarray, np.ndarray]:
+    kw = dict(dtype=body.dtype, device=body.device)
+    with torch.no_grad():
+        out = body(torch.as_tensor(pose, **kw)[None], torch.as_tensor(shape, **kw)[None],
+                   torch.as_tensor(go, **kw)[None], torch.as_tensor(transl, **kw)[None])
+    return (out.vertices[0].cpu().numpy().astype(np.float64),
+            out.joints[0].cpu().numpy().astype(np.float64))
+
+
+def _up_axis(body: BodyModel, global_orient: np.ndarray) -> np.ndarray:
+    """The body's canonical up axis in the camera frame."""
+    C = body.canonical_rotation.cpu().numpy().astype(np.float64)
+    R = Rotation.from_rotvec(np.asarray(global_orient, np.float64)).as_matrix()
+    return R @ C.T @ np.array([0.0, 1.0, 0.0])
+
+
+def _view_interval(camera: Camera, verts: np.ndarray, axis: int) -> tuple[float, float]:
+    """Offsets along x (axis 0) or y (axis 1) that keep every vertex inside the image."""
+    f, c, n = ((camera.fx, camera.cx, camera.width) if axis == 0
+               else (camera.fy, camera.cy, camera.height))
+    z = np.maximum(verts[:, 2], 1e-3)
+    lo = (-0.5 - c) * z / f - verts[:, axis]
+    hi = (n - 0.5 - c) * z / f - verts[:, axis]
+    return float(lo.max()), float(hi.min())
+
+
+def _pick(rng, lo: float, hi: float, pref: tuple[float, float] | None = None) -> float:
+    """Uniform in [lo, hi] (intersected with pref when they overlap); the midpoint when
+    the interval is empty (the body does not fit: centre it)."""
+    r = rng.random()  # always drawn: the stream does not depend on the branch
+    if hi < lo:
+        mid = 0.5 * (lo + hi)
+        return float(np.clip(mid, *pref)) if pref is not None else mid
+    if pref is not None:
+        a, b = max(lo, pref[0]), min(hi, pref[1])
+        if a <= b:
+            return a + r * (b - a)
+        return hi if pref[0] > hi else lo  # the view end nearest to the preference
+    return lo + r * (hi - lo)
+
+
+def _height_interval(verts: np.ndarray, up: np.ndarray, x: float,
+                     heights: tuple[float, float]) -> tuple[float, float]:
+    """y offsets giving a camera height (above the lowest vertex along up) in `heights`."""
+    m = float((verts @ up).min())
+    # h = -(m + x up_x + y up_y) ; up_y < 0 for an upright-ish person
+    uy = up[1] if abs(up[1]) > 1e-6 else -1e-6
+    a = (-heights[0] - m - x * up[0]) / uy
+    b = (-heights[1] - m - x * up[0]) / uy
+    return min(a, b), max(a, b)
+
+
+def _finish(body: BodyModel, camera: Camera, verts, joints, pose, shape, go, transl,
+            scene: render_mod.Background | None, noise: bool, p: SynthParams,
+            noise_rng: np.random.Generator) -> dict:
+    faces = body.faces_numpy()
+    parts = body.part_labels.cpu().numpy()
+    r = render_mod.render_body(verts, faces, parts, camera, scene)
+    inrange = (r.depth >= camera.min_range) & (r.depth <= camera.max_range)
+    clean = np.where(inrange, r.depth, 0).astype(np.float32)
+    labels = np.where(inrange, r.labels, 0).astype(np.uint8)
+    vids = np.where(inrange, r.vertex_ids, -1).astype(np.int32)
+    depth = clean
+    if noise:
+        nr = noise_mod.apply_noise(clean, r.normals_cos, noise_rng, p.noise, fx=camera.fx)
+        ok = (nr.depth >= camera.min_range) & (nr.depth <= camera.max_range)
+        depth = np.where(ok, nr.depth, 0).astype(np.float32)
+        labels = np.where(ok, nr.take(labels, 0), 0).astype(np.uint8)
+        vids = np.where(ok, nr.take(vids, -1), -1).astype(np.int32)
+    return dict(depth=depth, depth_clean=clean, labels=labels, vertex_ids=vids,
+                vertices=verts.astype(np.float32), joints=joints.astype(np.float32),
+                pose=np.asarray(pose, np.float32), shape=np.asarray(shape, np.float32),
+                global_orient=np.asarray(go, np.float32),
+                transl=np.asarray(transl, np.float32), K=camera.K)
+
+
+def make_frame(body: BodyModel, sampler: PoseSampler, rng: np.random.Generator,
+               camera: Camera, noise: bool = True, background: bool = True,
+               params: SynthParams | None = None) -> dict:
+    """One independent synthetic frame.
+
+    The root depth is uniform in the depth range, yaw uniform in [-pi, pi), pitch/roll
+    within +-tilt_deg; x and y are drawn where the whole body stays in the image (centred
+    when it cannot), preferring a plausible camera height above the feet.
+
+    Args:
+        body: body model.
+        sampler: pose sampler for that body.
+        rng: random generator.
+        camera: intrinsics, image size and valid range.
+        noise: apply the sensor noise model.
+        background: add a random floor / walls / boxes.
+        params: sampling parameters (default SynthParams()).
+
+    Returns:
+        dict with depth (H, W) float32 metres (0 invalid), depth_clean (H, W) float32
+        (noise-free, range-clipped), labels (H, W) uint8, vertex_ids (H, W) int32 (-1
+        empty), vertices (V, 3) float32 and joints (J, 3) float32 (camera optical frame,
+        metres), pose (P, 3), shape (S,), global_orient (3,), transl (3,) float32 and
+        K (3, 3) float64.
+    """
+    p = params or SynthParams()
+    scene_seed, noise_seed = rng.integers(0, 2**63 - 1, 2)
+    shape = sample_shape(body, rng)[0]
+    pose = sampler.sample(rng)[0]
+    yaw = rng.uniform(-np.pi, np.pi)
+    pitch, roll = np.deg2rad(rng.uniform(-p.tilt_deg, p.tilt_deg, 2))
+    z = rng.uniform(*_depth_range(camera, p))
+    go, transl = placement(body, shape, yaw, pitch, roll, np.array([0.0, 0.0, z]))
+    verts, joints = _forward(body, pose, shape, go, transl)
+    up = _up_axis(body, go)
+    x = _pick(rng, *_view_interval(camera, verts, 0))
+    y = _pick(rng, *_view_interval(camera, verts, 1),
+              pref=_height_interval(verts, up, x, p.camera_height))
+    shift = np.array([x, y, 0.0])
+    verts, joints, transl = verts + shift, joints + shift, transl + shift
+    scene = None
+    if background:
+        scene = render_mod.sample_background(np.random.default_rng(scene_seed), camera,
+                                             joints[0], verts, up, p.background)
+    return _finish(body, camera, verts, joints, pose, shape, go, transl, scene, noise, p,
+                   np.random.default_rng(noise_seed))
+
+
+def _ease(keys: np.ndarray, frames: int, every: int) -> np.ndarray:
+    """Cosine interpolation between keyframes placed every `every` frames."""
+    out = []
+    for f in range(frames):
+        k, r = divmod(f, every)
+        s = 0.5 - 0.5 * np.cos(np.pi * r / every)
+        out.append((1 - s) * keys[k] + s * keys[k + 1])
+    return np.asarray(out)
+
+
+def make_sequence(body: BodyModel, sampler: PoseSampler, rng: np.random.Generator,
+                  camera: Camera, frames: int, noise: bool = True, background: bool = True,
+                  params: SynthParams | None = None) -> Iterator[dict]:
+    """A smooth sequence: one person, one static camera and room, `frames` frames.
+
+    Poses follow `PoseSampler.sequence`; the root glides between random ground positions
+    and yaws (keyframes every `seq_key_every` frames, cosine-eased) with the lowest
+    vertex kept on the floor; camera tilt and body shape are fixed.
+
+    Args:
+        body, sampler, rng, camera, noise, background, params: as for `make_frame`.
+        frames: number of frames.
+
+    Yields:
+        Frame dicts as returned by `make_frame`, lazily (one render per `next`).
+    """
+    p = params or SynthParams()
+    scene_seed, noise_seed = rng.integers(0, 2**63 - 1, 2)
+    noise_rng = np.random.default_rng(noise_seed)
+    shape = sample_shape(body, rng)[0]
+    poses = sampler.sequence(rng, frames, p.pose_key_every)
+    pitch, roll = np.deg2rad(rng.uniform(-p.tilt_deg, p.tilt_deg, 2))
+    zlo, zhi = _depth_range(camera, p)
+    nk = frames // p.seq_key_every + 2
+    keys = np.zeros((nk, 3))  # x, z, yaw
+    for k in range(nk):
+        if k == 0:
+            z, yaw = rng.uniform(zlo, zhi), rng.uniform(-np.pi, np.pi)
+        else:
+            z = float(np.clip(keys[k - 1, 1] + rng.uniform(-1, 1) * p.seq_step_m, zlo, zhi))
+            yaw = keys[k - 1, 2] + np.deg2rad(rng.uniform(-1, 1) * p.seq_yaw_step_deg)
+        half = 0.35  # keep roughly a body half-width inside the image
+        lo = -(camera.cx + 0.5) * z / camera.fx + half
+        hi = (camera.width - 0.5 - camera.cx) * z / camera.fx - half
+        x = _pick(rng, lo, hi)
+        if k > 0:  # limit the step
+            x = float(np.clip(x, keys[k - 1, 0] - p.seq_step_m, keys[k - 1, 0] + p.seq_step_m))
+        keys[k] = (x, z, yaw)
+    track = _ease(keys, frames, p.seq_key_every)
+
+    C = body.canonical_rotation.cpu().numpy().astype(np.float64)
+    tilt = Rotation.from_euler('xz', [pitch, roll]).as_matrix()  # about canonical x, z
+    up = OPTICAL_FROM_CANONICAL @ tilt @ np.array([0.0, 1.0, 0.0])
+    _, t0 = placement(body, shape, 0.0, 0.0, 0.0, np.zeros(3))  # transl = root - h0
+    floor = None
+    scene = None
+    for f in range(frames):
+        x, z, yaw = track[f]
+        R = OPTICAL_FROM_CANONICAL @ tilt @ Rotation.from_euler('y', yaw).as_matrix() @ C
+        go = Rotation.from_matrix(R).as_rotvec()
+        rel, jrel = _forward(body, poses[f], shape, go, t0)  # root at the origin
+        m = float((rel @ up).min())
+        if floor is None:  # first frame: the camera height that keeps the body in view
+            y0 = _pick(rng, *_view_interval(camera, rel + [x, 0.0, z], 1),
+                       pref=_height_interval(rel + [x, 0.0, z], up, 0.0, p.camera_height))
+            floor = float(((rel + [x, y0, z]) @ up).min())
+        y = (floor - m - x * up[0] - z * up[2]) / up[1]
+        root = np.array([x, y, z])
+        verts, joints, transl = rel + root, jrel + root, t0 + root
+        if background and scene is None:
+            track_xyz = np.stack([track[:, 0], np.full(frames, y), track[:, 1]], 1)
+            scene = render_mod.sample_background(np.random.default_rng(scene_seed), camera,
+                                                 root, verts, up, p.background,
+                                                 avoid=track_xyz)
+        yield _finish(body, camera, verts, joints, poses[f], shape, go, transl, scene,
+                      noise, p, noise_rng)
