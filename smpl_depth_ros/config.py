@@ -24,6 +24,8 @@ class FitConfig:
     lbfgs_lr: float = 0.6
     max_points: int = 1500            # correspondences kept per frame (random subset)
     lost_residual_m: float = 0.06     # median residual above which the track is lost
+    flip_restart: bool = True         # cold fits: retry turned 180 deg when the fit is poor
+    flip_residual_m: float = 0.06     # median residual that triggers that retry
 
 
 @dataclass(frozen=True)

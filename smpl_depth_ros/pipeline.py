@@ -121,7 +121,9 @@ class Reconstructor:
             if len(persons) >= cfg.max_persons:
                 break
             fg = (lab[i] > 0) & (x[i, 1] > 0)
-            if fg.sum() < MIN_BODY_PIXELS:
+            # A candidate is a person when the network sees a body in most of it.
+            if fg.sum() < MIN_BODY_PIXELS or fg.sum() < 0.4 * max(int(x[i, 1].sum()), 1) \
+                    * self._blob_fraction(crop, x[i, 1]):
                 continue
             tc = time.perf_counter()
             vids = self.net.lookup(lab[i], coords[i], fg)
@@ -163,6 +165,13 @@ class Reconstructor:
         if first:
             self._track = (fit.params, stamp_ns) if cfg.tracking else None
         return fit, False
+
+    @staticmethod
+    def _blob_fraction(crop, valid) -> float:
+        """Share of the crop's valid pixels that belong to the candidate's blob."""
+        if crop.mask is None:
+            return 1.0
+        return min(1.0, float(crop.mask.sum()) / max(float(valid.sum()) * crop.scale ** 2, 1.0))
 
     @staticmethod
     def _paste_labels(labels_full, crop, lab) -> np.ndarray:

@@ -171,9 +171,16 @@ class Fitter:
                if idx is None else idx[ids])
         return r0, A, h0, B, w, idx
 
-    def _pose_points(self, rot, rest_pts, w, idx, heads):
-        """Per-influence and blended posed points (no global translation)."""
+    def _pose_points(self, rot, rest_pts, w, idx, heads, ids=None):
+        """Per-influence and blended posed points (no global translation).
+
+        With `ids` (vertex targets) the backend's pose-corrective offsets (SMPL's pose
+        blendshapes) are added to the rest points; their derivative is left out of the
+        Jacobian (a small, standard Gauss-Newton approximation).
+        """
         body = self.body
+        if ids is not None and hasattr(body, 'pose_offsets'):
+            rest_pts = rest_pts + body.pose_offsets(rot[None], ids)[0]
         G, x = body.skeleton_pose(rot[None], heads[None])
         G, x = G[0], x[0]
         vk = (G[idx] @ (rest_pts[:, None, :] - heads[idx])[..., None])[..., 0] + x[idx]
@@ -249,8 +256,21 @@ class Fitter:
                                         iterations or cfg.lbfgs_iterations, fix_shape)
         elif solver == 'fast':
             n = iterations or (cfg.tracking_iterations if warm else cfg.iterations)
+            start = {k: v.clone() for k, v in params.items()}
             params, iters = self._gauss_newton(params, pts, ids, wts, targets_are_joints, n,
                                                fix_shape)
+            if not warm and cfg.flip_restart and not targets_are_joints:
+                # Depth-only correspondences can confuse front and back: when the fit
+                # leaves a large residual, also try the init turned 180 deg about the
+                # body's vertical axis and keep the lower energy.
+                med = float(self._median_residual(params, pts, ids))
+                if med > cfg.flip_residual_m:
+                    alt = self._flipped(start, pts)
+                    alt, it2 = self._gauss_newton(alt, pts, ids, wts, False, n, fix_shape)
+                    if self._energy(alt, pts, ids, wts, False) < \
+                            self._energy(params, pts, ids, wts, False):
+                        params = alt
+                    iters += it2
         else:
             raise ValueError(f"unknown solver {solver!r} (expected 'fast' or 'lbfgs')")
         return self._result(params, pts_all, ids_all, wts_all, targets_are_joints, iters,
@@ -281,6 +301,7 @@ class Fitter:
         wsum = float(len(pts)) if wts is None else float(wts.sum())
         r0, A, h0, B, w, idx = self._rest_linear(shape, ids, joints)
         s0 = shape[0].clone()
+        vids = None if joints else ids
 
         def rest_at(sh):
             ds = sh[0] - s0
@@ -295,7 +316,7 @@ class Fitter:
                     s0 = shape[0].clone()
                 rest_cache = rest_at(shape)
             rp, heads = rest_cache
-            v, vk, G, x = self._pose_points(rot, rp, w, idx, heads)
+            v, vk, G, x = self._pose_points(rot, rp, w, idx, heads, vids)
             e = v + transl - pts
             sq = (e * e).sum(-1)
             aa = lbs.matrix_to_axis_angle(rot[1:])
@@ -311,7 +332,7 @@ class Fitter:
                 _, rot, transl, shape, rest_cache = prev
                 mu *= 10
                 rp, heads = rest_cache
-                v, vk, G, x = self._pose_points(rot, rp, w, idx, heads)
+                v, vk, G, x = self._pose_points(rot, rp, w, idx, heads, vids)
                 e = v + transl - pts
                 sq = (e * e).sum(-1)
                 aa = lbs.matrix_to_axis_angle(rot[1:])
@@ -378,6 +399,30 @@ class Fitter:
             if en_last > prev[0]:
                 params = self._pack(prev[1], prev[2], prev[3])
         return params, it
+
+    def _median_residual(self, params, pts, ids):
+        with torch.no_grad():
+            uniq, inv = torch.unique(ids, return_inverse=True)
+            v = self.body(params['pose'], params['shape'], params['global_orient'],
+                          params['transl'], vertex_ids=uniq).vertices[0, inv]
+            return ((v - pts) ** 2).sum(-1).sqrt().median()
+
+    def _flipped(self, params, pts):
+        """params turned 180 deg about the body's up axis, through the points' centroid."""
+        body = self.body
+        R = lbs.axis_angle_to_matrix(params['global_orient'][0])
+        up = R @ self._C.T @ torch.tensor([0.0, 1.0, 0.0], dtype=R.dtype, device=R.device)
+        F = lbs.axis_angle_to_matrix(up * torch.pi)
+        with torch.no_grad():
+            zero = torch.zeros_like(params['pose'])
+            root = body(zero, params['shape']).joints[0, 0]
+        c = pts.mean(0)
+        out = {k: v.clone() for k, v in params.items()}
+        out['global_orient'] = lbs.matrix_to_axis_angle(F @ R)[None]
+        # New root position: rotate the current root position about the centroid.
+        p_root = root + params['transl'][0]
+        out['transl'] = (F @ (p_root - c) + c - root)[None]
+        return out
 
     def _pack(self, rot, transl, shape):
         aa = lbs.matrix_to_axis_angle(rot)

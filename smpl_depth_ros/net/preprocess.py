@@ -2,7 +2,7 @@
 
 1. Valid pixels in [depth_min, depth_max].
 2. Large planes (floor, walls) removed: RANSAC on a subsample, a plane is dropped when it
-   holds > 12 % of the valid points.
+   holds > 12 % of the valid points and spans > 1 m in both in-plane directions.
 3. Connected components of what remains, with edges cut at depth jumps > 6 cm between
    neighbouring pixels; a blob is a person candidate when it has enough pixels and a
    plausible 3D size (0.4-2.6 m tall, < 1.6 m wide).
@@ -96,7 +96,7 @@ def crop_depth(depth: np.ndarray, crop: Crop) -> np.ndarray:
 
 
 def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=3,
-                   min_fraction=0.12, thresh=0.03, iters=120) -> np.ndarray:
+                   min_fraction=0.12, thresh=0.03, iters=120, min_extent=1.0) -> np.ndarray:
     """Boolean mask of points that belong to none of the dominant planes."""
     keep = np.ones(len(points), bool)
     n_all = len(points)
@@ -122,6 +122,15 @@ def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=3,
         dist = np.abs((points[idx] - a[best]) @ n[best])
         inl = dist < thresh
         if inl.sum() < min_fraction * n_all:
+            break
+        # Only scene-sized planes (floor, walls): both in-plane extents > min_extent m.
+        # A person's torso is planar-ish too, but never that large.
+        e1 = np.cross(n[best], [1.0, 0, 0] if abs(n[best][0]) < 0.9 else [0, 1.0, 0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(n[best], e1)
+        q = points[idx[inl]]
+        ext = [np.percentile(q @ e, 98) - np.percentile(q @ e, 2) for e in (e1, e2)]
+        if min(ext) < min_extent:
             break
         keep[idx[inl]] = False
     return keep

@@ -1,0 +1,75 @@
+"""Correspondence network, preprocessing and the shipped weights (core, no ROS)."""
+import os
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from smpl_depth_ros.body.anny_model import AnnyBody
+from smpl_depth_ros.net.data import make_fixed_set
+from smpl_depth_ros.net.infer import CorrespondenceNet, default_weights
+from smpl_depth_ros.net.preprocess import crop_depth, find_persons, network_input
+from smpl_depth_ros.net.unet import INPUT_SIZE, build_network
+
+REAL = os.path.join(os.path.dirname(__file__), '..', '..', 'shared', 'data', 'real',
+                    'five_people_depth_mm.png')
+K_KINECT = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]])
+
+
+@pytest.fixture(scope='module')
+def body():
+    return AnnyBody()
+
+
+@pytest.mark.parametrize('kind', ['double', 'single'])
+def test_network_shapes(kind):
+    net = build_network(kind).eval()
+    with torch.no_grad():
+        logits, coords = net(torch.zeros(2, 2, INPUT_SIZE, INPUT_SIZE))
+    assert logits.shape == (2, 15, INPUT_SIZE, INPUT_SIZE)
+    assert coords.shape == (2, 3, INPUT_SIZE, INPUT_SIZE)
+    assert coords.min() >= 0 and coords.max() <= 1
+
+
+def test_shipped_weights_are_small_and_useful(body):
+    """The shipped double U-Net segments held-out synthetic crops (seed unseen in training)."""
+    path = default_weights('anny')
+    assert os.path.getsize(path) < 20e6
+    net = CorrespondenceNet(body)
+    assert net.meta['kind'] == 'double' and net.meta['body_vertices'] == body.num_vertices
+    x, labels, coords, cm = make_fixed_set(body, 12, seed=4242)
+    lab, co = net.predict(x.numpy())
+    l = labels.numpy()
+    ious = [((lab == c) & (l == c)).sum() / max(((lab == c) | (l == c)).sum(), 1)
+            for c in range(1, 15) if (l == c).any()]
+    assert np.mean(ious) > 0.6, np.mean(ious)
+    m = cm.numpy()
+    err = np.linalg.norm(co.transpose(0, 2, 3, 1)[m] - coords.numpy().transpose(0, 2, 3, 1)[m],
+                         axis=1)
+    assert np.median(err) < 0.08  # normalised canonical units (1 = body extent)
+    ids = net.lookup(lab[0], co[0], (lab[0] > 0) & (x[0, 1].numpy() > 0))
+    assert ids.min() >= 0 and ids.max() < body.num_vertices
+
+
+def test_person_detection_on_real_kinect_frame():
+    depth = np.asarray(Image.open(REAL)).astype(np.float32) / 1000.0
+    crops = find_persons(depth, K_KINECT, 0.5, 10.0, min_pixels=400, max_persons=8)
+    big = [c for c in crops if c.mask.sum() > 15000]
+    assert len(big) >= 4  # five people, two of them touching
+    # Most central first.
+    centres = [abs(c.u0 + c.scale * c.size / 2 - 320) for c in crops]
+    assert centres[0] == min(centres)
+    x = network_input(crop_depth(depth, crops[0]), crops[0].median_depth)
+    assert x.shape == (2, INPUT_SIZE, INPUT_SIZE) and x[1].sum() > 500
+
+
+def test_weights_for_another_body_are_refused(body, tmp_path):
+    ck = torch.load(default_weights('anny'), map_location='cpu', weights_only=False)
+    ck['meta']['body_vertices'] = 6890
+    p = tmp_path / 'w.pt'
+    torch.save(ck, p)
+    with pytest.raises(ValueError, match='6890'):
+        CorrespondenceNet(body, str(p))
+    with pytest.raises(FileNotFoundError, match='train_correspondence'):
+        CorrespondenceNet(body, str(tmp_path / 'missing.pt'))
