@@ -24,6 +24,8 @@ class FitConfig:
     lbfgs_lr: float = 0.6
     max_points: int = 1500            # correspondences kept per frame (random subset)
     lost_residual_m: float = 0.06     # median residual above which the track is lost
+    icp_rounds: int = 1               # part-constrained nearest-vertex refinements after
+                                      # the Eq. 2 fit (0 = the paper's single fit)
     flip_restart: bool = True         # cold fits: retry turned 180 deg when the fit is poor
     flip_residual_m: float = 0.06     # median residual that triggers that retry
 
@@ -43,6 +45,8 @@ class PipelineConfig:
     tracking: bool = True
     max_image_pixels: int = 4096 * 4096
     tracking_max_gap_s: float = 0.5   # reset tracking after a longer gap between frames
+    reject_residual_m: float = 0.09   # candidates whose fit leaves a larger median residual
+                                      # are not reported as persons
     fit: FitConfig = field(default_factory=FitConfig)
 
     def with_overrides(self, **kw) -> 'PipelineConfig':

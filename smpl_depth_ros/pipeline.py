@@ -135,6 +135,18 @@ class Reconstructor:
             tf = time.perf_counter()
             timings['correspondence'] += (tf - tc) * 1e3
             fit, tracked = self._fit(pts, vids, stamp_ns, first=not persons)
+            if fit.median_residual > cfg.reject_residual_m:
+                # The body model cannot explain this blob: not a person (or a failed fit).
+                timings['fit'] += (time.perf_counter() - tf) * 1e3
+                if not persons:
+                    self.reset()
+                continue
+            for _ in range(cfg.fit.icp_rounds):
+                vids = self._refine_correspondences(pts, vids, fit.vertices)
+                fit = self.fitter.fit(pts, vids, init=fit.params, fix_shape=False,
+                                      iterations=cfg.fit.tracking_iterations)
+            if not persons and cfg.tracking and self._track is not None:
+                self._track = (fit.params, stamp_ns)
             timings['fit'] += (time.perf_counter() - tf) * 1e3
             mask = self._paste_labels(labels_full, crop, lab[i])
             persons.append(PersonResult(
@@ -142,13 +154,27 @@ class Reconstructor:
                 bbox=(int(crop.u0), int(crop.v0), int(crop.u0 + crop.scale * crop.size),
                       int(crop.v0 + crop.scale * crop.size)),
                 mask=mask, residual_m=fit.median_residual, num_points=int(len(pts)),
-                tracked=tracked))
+                tracked=tracked, pixels=np.stack([r, c], 1), vertex_ids=vids))
         if not persons:
             self.reset()
             raise InputError('no_person', 'person candidates found, but the network '
                              'segmented no body in them')
         timings['total'] = (time.perf_counter() - t0) * 1e3
         return FrameResult(persons=persons, labels=labels_full, timings_ms=timings)
+
+    def _refine_correspondences(self, pts, vids, vertices):
+        """ICP step inside the predicted part: each point takes the nearest vertex of the
+        fitted mesh among the vertices of its Eq. 2 vertex's part (the network decides
+        the part, the geometry the exact vertex)."""
+        body = self.body
+        P = torch.as_tensor(pts, device=self.device)
+        V = torch.as_tensor(vertices, device=self.device, dtype=P.dtype)
+        parts = body.part_labels
+        pp = parts[torch.as_tensor(vids, device=self.device)]
+        d = torch.cdist(P, V)
+        d.masked_fill_(parts[None, :] != pp[:, None], float('inf'))
+        d.masked_fill_(~body.valid_vertices[None, :], float('inf'))
+        return d.argmin(1).cpu().numpy()
 
     def _fit(self, pts, vids, stamp_ns, first: bool):
         cfg = self.config

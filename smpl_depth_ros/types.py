@@ -52,6 +52,8 @@ class PersonResult:
     residual_m: float
     num_points: int
     tracked: bool = False
+    pixels: np.ndarray | None = None      # (N, 2) full-image (row, col) of fitted points
+    vertex_ids: np.ndarray | None = None  # (N,) their Eq. 2 template vertex
 
 
 @dataclass

@@ -1,0 +1,44 @@
+"""Accuracy metrics (no ROS): paper Eq. 5 and friends."""
+from __future__ import annotations
+
+import numpy as np
+
+
+def pve(pred: np.ndarray, gt: np.ndarray, valid: np.ndarray | None = None) -> float:
+    """Mean per-vertex error (paper Eq. 5), metres, camera frame, no alignment."""
+    d = np.linalg.norm(pred - gt, axis=-1)
+    return float(d[valid].mean() if valid is not None else d.mean())
+
+
+def procrustes(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """pred aligned to gt by the similarity transform (rotation, translation, scale)."""
+    mp, mg = pred.mean(0), gt.mean(0)
+    p, g = pred - mp, gt - mg
+    U, S, Vt = np.linalg.svd(p.T @ g)
+    d = np.sign(np.linalg.det(U @ Vt))
+    D = np.diag([1.0, 1.0, d])
+    R = U @ D @ Vt
+    s = (S * np.diag(D)).sum() / (p ** 2).sum()
+    return s * p @ R + mg
+
+
+def pa_pve(pred, gt, valid=None) -> float:
+    return pve(procrustes(pred, gt), gt, valid)
+
+
+def mpjpe(pred_joints, gt_joints) -> float:
+    return float(np.linalg.norm(pred_joints - gt_joints, axis=-1).mean())
+
+
+def confusion(pred: np.ndarray, gt: np.ndarray, n: int = 15) -> np.ndarray:
+    """(n, n) pixel counts, rows = ground truth, on pixels where either is a body part."""
+    m = (pred > 0) | (gt > 0)
+    return np.bincount(gt[m].astype(np.int64) * n + pred[m], minlength=n * n).reshape(n, n)
+
+
+def miou(conf: np.ndarray) -> float:
+    """Mean IoU over the 14 body parts (background excluded) from a confusion matrix."""
+    tp = np.diag(conf)
+    union = conf.sum(0) + conf.sum(1) - tp
+    iou = tp[1:] / np.maximum(union[1:], 1)
+    return float(iou[union[1:] > 0].mean())
