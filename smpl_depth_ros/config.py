@@ -16,7 +16,8 @@ class FitConfig:
     lambda_pose: float = 1e-3         # lambda_theta: joint-limit prior weight (per rad^2)
     lambda_pose_l2: float = 1e-7      # weak pull of every joint towards rest
     lambda_shape: float = 1e-6        # lambda_beta (per squared standard deviation)
-    gm_sigma: float = 0.05            # Geman-McClure scale (metres)
+    gm_sigma: float = 0.03            # Geman-McClure scale (metres)
+    gm_sigma_start: float = 0.1       # cold fits start wider and anneal to gm_sigma
     solver: str = 'fast'              # 'fast' (default) | 'lbfgs' (the paper's reference)
     iterations: int = 12              # cold-start iterations of the fast solver
     tracking_iterations: int = 4      # warm-start iterations

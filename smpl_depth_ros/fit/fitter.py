@@ -257,8 +257,9 @@ class Fitter:
         elif solver == 'fast':
             n = iterations or (cfg.tracking_iterations if warm else cfg.iterations)
             start = {k: v.clone() for k, v in params.items()}
+            s0 = None if warm else cfg.gm_sigma_start
             params, iters = self._gauss_newton(params, pts, ids, wts, targets_are_joints, n,
-                                               fix_shape)
+                                               fix_shape, s0)
             if not warm and cfg.flip_restart and not targets_are_joints:
                 # Depth-only correspondences can confuse front and back: when the fit
                 # leaves a large residual, also try the init turned 180 deg about the
@@ -266,7 +267,7 @@ class Fitter:
                 med = float(self._median_residual(params, pts, ids))
                 if med > cfg.flip_residual_m:
                     alt = self._flipped(start, pts)
-                    alt, it2 = self._gauss_newton(alt, pts, ids, wts, False, n, fix_shape)
+                    alt, it2 = self._gauss_newton(alt, pts, ids, wts, False, n, fix_shape, s0)
                     if self._energy(alt, pts, ids, wts, False) < \
                             self._energy(params, pts, ids, wts, False):
                         params = alt
@@ -283,8 +284,16 @@ class Fitter:
 
     # ------------------------------------------------------------------ solvers
     def _gauss_newton(self, params, pts, ids, wts, joints: bool, iterations: int,
-                      fix_shape: bool):
+                      fix_shape: bool, sigma_start: float | None = None):
         cfg, body = self.cfg, self.body
+        s_end = cfg.gm_sigma
+        s_start = max(sigma_start or s_end, s_end)
+
+        def sigma_at(it):
+            # Graduated non-convexity: a wide robust kernel first (big basin), then the
+            # final scale, reached half-way through the iterations.
+            f = min(1.0, (it - 1) / max(iterations / 2, 1))
+            return s_start * (s_end / s_start) ** f
         P, S = body.num_pose_joints, body.num_shape
         rot = lbs.axis_angle_to_matrix(
             torch.cat([params['global_orient'][:, None], params['pose']], 1))[0]  # (J,3,3)
@@ -298,6 +307,7 @@ class Fitter:
             cfg.lambda_shape ** 0.5
         mu = 1e-3
         prev = None
+        prev_sigma = None
         wsum = float(len(pts)) if wts is None else float(wts.sum())
         r0, A, h0, B, w, idx = self._rest_linear(shape, ids, joints)
         s0 = shape[0].clone()
@@ -322,7 +332,11 @@ class Fitter:
             aa = lbs.matrix_to_axis_angle(rot[1:])
             canon = aa @ Cm.T
             viol = objective.limit_violation(canon, lim)
-            rho = objective.geman_mcclure(sq, cfg.gm_sigma)
+            sigma = sigma_at(it)
+            if prev is not None and sigma != prev_sigma:
+                prev = None  # energies at different scales are not comparable
+            prev_sigma = sigma
+            rho = objective.geman_mcclure(sq, sigma)
             data = (rho.sum() if wts is None else (rho * wts).sum()) / wsum
             en = (cfg.lambda_data * data + cfg.lambda_pose * (viol ** 2).sum()
                   + cfg.lambda_pose_l2 * (aa ** 2).sum()
@@ -342,7 +356,7 @@ class Fitter:
                 mu = max(mu / 3, 1e-6)
                 prev = (en, rot, transl, shape, rest_cache)
             # IRLS weights of the Geman-McClure term.
-            om = objective.gm_weights(sq, cfg.gm_sigma) * cfg.lambda_data / wsum
+            om = objective.gm_weights(sq, sigma) * cfg.lambda_data / wsum
             if wts is not None:
                 om = om * wts
             # Data Jacobian: rotations (analytic), translation (identity), shape (fwd-mode).
