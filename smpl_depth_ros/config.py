@@ -19,11 +19,11 @@ class FitConfig:
     gm_sigma: float = 0.03            # Geman-McClure scale (metres)
     gm_sigma_start: float = 0.1       # cold fits start wider and anneal to gm_sigma
     solver: str = 'fast'              # 'fast' (default) | 'lbfgs' (the paper's reference)
-    iterations: int = 12              # cold-start iterations of the fast solver
+    iterations: int = 10              # cold-start iterations of the fast solver
     tracking_iterations: int = 4      # warm-start iterations
     lbfgs_iterations: int = 20        # the paper's reference solver
     lbfgs_lr: float = 0.6
-    max_points: int = 1500            # correspondences kept per frame (random subset)
+    max_points: int = 1000            # correspondences kept per frame (random subset)
     lost_residual_m: float = 0.06     # median residual above which the track is lost
     icp_rounds: int = 1               # part-constrained nearest-vertex refinements after
                                       # the Eq. 2 fit (0 = the paper's single fit)

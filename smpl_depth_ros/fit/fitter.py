@@ -165,7 +165,9 @@ class Fitter:
             jb = body.joint_bones[ids]
             w = torch.ones(len(ids), 1, dtype=body.dtype, device=body.device)
             return h0[jb], B[jb], h0, B, w, self._joint_parent_bone[ids][:, None]
-        r0, A, h0, B = body.rest_linear(shape, vertex_ids=ids)
+        uniq, inv = torch.unique(ids, return_inverse=True)
+        r0, A, h0, B = body.rest_linear(shape, vertex_ids=uniq)
+        r0, A = r0[inv], A[inv]
         w, idx = body.skin_weights[ids], body.skin_indices
         idx = (torch.arange(w.shape[1], device=w.device).expand(len(ids), -1)
                if idx is None else idx[ids])
@@ -376,8 +378,9 @@ class Fitter:
             Jd = torch.cat(cols, -1)  # (N, 3, n)
             Jw = Jd * om.sqrt()[:, None, None]
             ew = e * om.sqrt()[:, None]
-            H = torch.einsum('nca,ncb->ab', Jw, Jw)
-            g = torch.einsum('nca,nc->a', Jw, ew)
+            Jf = Jw.reshape(-1, n)
+            H = Jf.T @ Jf
+            g = Jf.T @ ew.reshape(-1)
             # Pose priors (Jacobian of the canonical axis-angle ~ C for the increment).
             out = (viol != 0).to(e.dtype)  # (P, 3)
             Jp = -(out[..., None] * Cm[None]) * sq_lp  # (P, 3, 3)
