@@ -148,7 +148,7 @@ class Reconstructor:
             if not persons and cfg.tracking and self._track is not None:
                 self._track = (fit.params, stamp_ns)
             timings['fit'] += (time.perf_counter() - tf) * 1e3
-            mask = self._paste_labels(labels_full, crop, lab[i])
+            mask = self._paste_labels(labels_full, crop, lab[i], d)
             persons.append(PersonResult(
                 params=fit.params, vertices=fit.vertices, joints=fit.joints,
                 bbox=(int(crop.u0), int(crop.v0), int(crop.u0 + crop.scale * crop.size),
@@ -200,16 +200,24 @@ class Reconstructor:
         return min(1.0, float(crop.mask.sum()) / max(float(valid.sum()) * crop.scale ** 2, 1.0))
 
     @staticmethod
-    def _paste_labels(labels_full, crop, lab) -> np.ndarray:
-        """Write the crop's labels into the full image inside the person's blob."""
-        if crop.mask is None:
-            return np.zeros(labels_full.shape, bool)
-        r, c = np.nonzero(crop.mask)
+    def _paste_labels(labels_full, crop, lab, depth) -> np.ndarray:
+        """Write the crop's body labels into the full image (valid pixels of this person,
+        others' blobs excluded); returns this person's (H, W) mask."""
+        H, W = labels_full.shape
+        u0, v0 = max(int(np.floor(crop.u0)), 0), max(int(np.floor(crop.v0)), 0)
+        u1 = min(int(np.ceil(crop.u0 + crop.scale * crop.size)), W)
+        v1 = min(int(np.ceil(crop.v0 + crop.scale * crop.size)), H)
+        m = np.zeros((H, W), bool)
+        if u1 <= u0 or v1 <= v0:
+            return m
+        r, c = np.mgrid[v0:v1, u0:u1]
         i = np.clip(((r + 0.5 - crop.v0) / crop.scale).astype(np.int64), 0, crop.size - 1)
         j = np.clip(((c + 0.5 - crop.u0) / crop.scale).astype(np.int64), 0, crop.size - 1)
         v = lab[i, j]
-        keep = v > 0
+        keep = (v > 0) & (depth[r, c] > 0) & \
+            (np.abs(depth[r, c] - crop.median_depth) < 1.0)
+        if crop.exclude is not None:
+            keep &= ~crop.exclude[r, c]
         labels_full[r[keep], c[keep]] = v[keep]
-        m = np.zeros(labels_full.shape, bool)
         m[r[keep], c[keep]] = True
         return m

@@ -1,8 +1,9 @@
 """Input preparation for a real sensor frame (no ROS).
 
 1. Valid pixels in [depth_min, depth_max].
-2. Large planes (floor, walls) removed: RANSAC on a subsample, a plane is dropped when it
-   holds > 12 % of the valid points and spans > 1 m in both in-plane directions.
+2. The floor removed: RANSAC on a subsample for near-horizontal planes (normal within
+   ~40 deg of the image vertical) holding > 3 % of the valid points and spanning > 1 m
+   in both in-plane directions (up to two, e.g. floor and a table top).
 3. Connected components of what remains, with edges cut at depth jumps > 6 cm between
    neighbouring pixels; a blob is a person candidate when it has enough pixels and a
    plausible 3D size (0.4-2.6 m tall, < 1.6 m wide).
@@ -37,6 +38,9 @@ class Crop:
         size: crop side in crop pixels (INPUT_SIZE).
         median_depth: the person's median depth (metres).
         mask: (H, W) bool person blob in the full image (None for training crops).
+        exclude: (H, W) bool pixels of other person candidates at least half this one's
+            size: hidden from the network and the fit (neighbours at a similar depth),
+            while this person's own self-occluding parts (separate blobs, smaller) stay.
     """
 
     u0: float
@@ -45,6 +49,7 @@ class Crop:
     size: int
     median_depth: float
     mask: np.ndarray | None = None
+    exclude: np.ndarray | None = None  # (H, W) bool: other (larger) persons' blobs
 
     def pixel_grid(self) -> tuple[np.ndarray, np.ndarray]:
         """Full-image (rows, cols) float centres of the crop pixels: (S,), (S,)."""
@@ -88,15 +93,21 @@ def network_input(depth_crop: np.ndarray, median_depth: float) -> np.ndarray:
     return x
 
 
-def crop_depth(depth: np.ndarray, crop: Crop) -> np.ndarray:
+def crop_depth(depth: np.ndarray, crop: Crop, only_blob: bool = True) -> np.ndarray:
+    """(S, S) depth of the crop (nearest neighbour); with `only_blob`, pixels of other
+    person candidates (`crop.exclude`) are zeroed so that neighbours at a similar depth
+    do not reach the network or the fit."""
     rr, cc, inside = crop.sample_indices(depth.shape)
     out = depth[rr, cc]
     out[~inside] = 0
+    if only_blob and crop.exclude is not None:
+        out[crop.exclude[rr, cc]] = 0
     return np.nan_to_num(out, nan=0.0).astype(np.float32)
 
 
-def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=3,
-                   min_fraction=0.12, thresh=0.03, iters=120, min_extent=1.0) -> np.ndarray:
+def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=2,
+                   min_fraction=0.03, thresh=0.03, iters=300, min_extent=1.0,
+                   min_up=0.75) -> np.ndarray:
     """Boolean mask of points that belong to none of the dominant planes."""
     keep = np.ones(len(points), bool)
     n_all = len(points)
@@ -116,6 +127,13 @@ def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=3,
         if not ok.any():
             break
         n, a = n[ok] / nn[ok, None], a[ok]
+        # Floor-like planes only (normal within ~40 deg of the image's vertical): people
+        # are cut from walls by depth jumps, but stand on the floor; side by side, several
+        # people at one depth would look like a wall.
+        up = np.abs(n[:, 1]) > min_up
+        if not up.any():
+            break
+        n, a = n[up], a[up]
         d = np.abs(np.einsum('hnk,hk->hn', P[None] - a[:, None], n))
         counts = (d < thresh).sum(1)
         best = int(np.argmax(counts))
@@ -129,8 +147,18 @@ def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=3,
         e1 /= np.linalg.norm(e1)
         e2 = np.cross(n[best], e1)
         q = points[idx[inl]]
-        ext = [np.percentile(q @ e, 98) - np.percentile(q @ e, 2) for e in (e1, e2)]
-        if min(ext) < min_extent:
+        u, v = q @ e1, q @ e2
+        lo_u, hi_u, lo_v, hi_v = (np.percentile(u, 2), np.percentile(u, 98),
+                                  np.percentile(v, 2), np.percentile(v, 98))
+        if min(hi_u - lo_u, hi_v - lo_v) < min_extent:
+            break
+        # A floor fills its extent; a thin horizontal slice through several people at
+        # one height does not (it is a few short segments): require >= 35 % of 10 cm cells.
+        cu = ((u - lo_u) / 0.1).astype(np.int64)
+        cv = ((v - lo_v) / 0.1).astype(np.int64)
+        ok2 = (cu >= 0) & (cv >= 0) & (u <= hi_u) & (v <= hi_v)
+        cells = len(set(zip(cu[ok2].tolist(), cv[ok2].tolist())))
+        if cells < 0.35 * ((hi_u - lo_u) / 0.1 + 1) * ((hi_v - lo_v) / 0.1 + 1):
             break
         keep[idx[inl]] = False
     return keep
@@ -187,11 +215,18 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
         height, width = hi[1] - lo[1], max(hi[0] - lo[0], hi[2] - lo[2])
         if not (0.4 <= height <= 2.6 and width <= 1.6):
             continue
-        grown = ndimage.binary_dilation(m, iterations=2) & valid & (np.abs(d - med) < 0.8)
+        grown = ndimage.binary_dilation(m, iterations=3) & valid & (np.abs(d - med) < 0.8)
         crops.append((float(np.hypot(cc.mean() - W / 2, rr.mean() - H / 2)),
                       square_crop(cc.min(), rr.min(), cc.max(), rr.max(), median_depth=med,
                                   mask=grown)))
         if len(crops) >= 3 * max_persons:
             break
     crops.sort(key=lambda t: t[0])
-    return [c for _, c in crops[:max_persons]]
+    crops = [c for _, c in crops[:max_persons]]
+    sizes = [int(c.mask.sum()) for c in crops]
+    for i, c in enumerate(crops):
+        others = [crops[j].mask for j in range(len(crops))
+                  if j != i and sizes[j] >= 0.5 * sizes[i]]
+        if others:
+            c.exclude = np.logical_or.reduce(others) & ~c.mask
+    return crops
