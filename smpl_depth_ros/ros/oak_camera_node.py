@@ -1,0 +1,471 @@
+"""The `oak_camera` node: live depth from a Luxonis OAK (depthai 3.x), and `reconstruct_oak`.
+
+Topics (relative names, remappable):
+    publishes   depth/image_raw (sensor_msgs/Image 16UC1, millimetres, 0 = invalid)
+                depth/camera_info (sensor_msgs/CameraInfo: the device calibration at the
+                published size; same header as the image)
+
+Stamps are the capture times from the device clock mapped to ROS time (`oak.ClockMapper`);
+frame_id is the `frame_id` parameter. The device is opened at start-up: none found ->
+one error line and exit code 1 (unless `wait_for_device`). A device lost while running
+is logged and reopened with exponential backoff; publishing resumes when it is back.
+
+Threading: a driver thread blocks on the device queue, converts each frame to an array
+(capture stamp mapped to ROS time) and drops it into a one-slot hand-off (newest wins, dropped
+frames counted); a guard condition wakes the executor, which builds the messages and
+publishes them. ROS entities are created and destroyed on the main thread only.
+
+`reconstruct_oak` runs this node and the `reconstructor` node in one process on one
+MultiThreadedExecutor; the camera hands its message objects straight to the
+reconstructor's depth/camera_info callbacks (no serialisation) and still publishes them.
+"""
+from __future__ import annotations
+
+import os
+
+# Before depthai is imported: its start-up warnings (e.g. 'USB protocol not available')
+# would otherwise precede our own one-line error. DEPTHAI_LEVEL=warn shows them again.
+os.environ.setdefault('DEPTHAI_LEVEL', 'error')
+
+import sys  # noqa: E402
+import threading  # noqa: E402
+import time  # noqa: E402
+from dataclasses import fields  # noqa: E402
+from typing import Any, Callable  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+import rclpy  # noqa: E402
+import rclpy.logging  # noqa: E402
+import rclpy.utilities  # noqa: E402
+from rclpy.executors import (ExternalShutdownException, MultiThreadedExecutor,  # noqa: E402
+                             SingleThreadedExecutor)
+from rclpy.node import Node  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange,  # noqa: E402
+                                ParameterDescriptor, ParameterType, SetParametersResult)
+from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
+
+from smpl_depth_ros.ros import adapters as A  # noqa: E402
+from smpl_depth_ros.ros import oak  # noqa: E402
+
+NODE_NAME = 'oak_camera'
+DEPTH_TOPIC = 'depth/image_raw'
+INFO_TOPIC = 'depth/camera_info'
+
+# Descriptions of the OakConfig fields.
+_DOC = {
+    'device_id': "device to open: MxID / device ID, IP (PoE) or USB name; '' = the first "
+                 'one found',
+    'connect_timeout_s': 'how long to look for the device at start-up (s)',
+    'wait_for_device': 'at start-up, keep looking (with backoff) instead of exiting',
+    'width': 'depth width (pixels; the mono outputs are requested at this size)',
+    'height': 'depth height (pixels)',
+    'fps': 'camera frame rate',
+    'preset': 'stereo preset: ' + ', '.join(oak.PRESETS),
+    'subpixel': 'subpixel disparity (finer depth steps far away)',
+    'extended_disparity': 'extended disparity (closer minimum range)',
+    'confidence_threshold': 'stereo confidence threshold 0..255 (-1 = the preset\'s)',
+    'decimation': 'decimation factor (1 = publish width x height)',
+    'median_filter': 'median filter: preset, off, 3x3, 5x5 or 7x7',
+    'spatial_filter': "spatial filter: 'preset', 'on' (with the spatial_* values) or 'off'",
+    'spatial_alpha': 'spatial filter smoothing alpha (0..1)',
+    'spatial_delta': 'spatial filter edge threshold (0 = auto)',
+    'spatial_hole_filling_radius': 'spatial filter hole-filling radius (pixels)',
+    'spatial_iterations': 'spatial filter iterations',
+    'temporal_filter': "temporal filter: 'preset', 'on' (with the temporal_* values) or "
+                       "'off'",
+    'temporal_alpha': 'temporal filter alpha (0..1)',
+    'temporal_delta': 'temporal filter edge threshold (0 = auto)',
+    'temporal_persistency': 'temporal filter persistency: ' + ', '.join(oak.PERSISTENCY),
+    'min_range': 'nearest depth published (metres); nearer pixels are 0',
+    'max_range': 'farthest depth published (metres); farther pixels are 0',
+    'align_to_color': 'align depth to the colour camera (CAM_A) instead of the rectified '
+                      'right camera (CAM_C)',
+    'frame_timeout_s': 'no frame for this long while running = device lost (s)',
+    'reconnect_backoff_s': 'first reconnection delay (s); doubles up to the maximum',
+    'reconnect_backoff_max_s': 'longest reconnection delay (s)',
+}
+# Node-only parameters: default, description.
+_NODE_PARAMS = {
+    'frame_id': ('oak_depth_optical_frame', 'frame_id of the published header'),
+    'publisher_reliability': ('reliable', "QoS reliability of the publishers: 'reliable' "
+                              "(serves reliable and best-effort subscribers) or "
+                              "'best_effort'"),
+    'warn_throttle_s': (5.0, 'per-problem throttle of warnings (s)'),
+}
+RUNTIME = {'frame_id', 'warn_throttle_s'}  # every other parameter needs a restart
+RELIABILITY = {'best_effort': ReliabilityPolicy.BEST_EFFORT,
+               'reliable': ReliabilityPolicy.RELIABLE}
+
+
+def parameter_defaults() -> dict[str, Any]:
+    """Every node parameter with its default (OakConfig's fields + node-only ones)."""
+    cfg = oak.OakConfig()
+    out = {f.name: getattr(cfg, f.name) for f in fields(oak.OakConfig)}
+    out.update({k: v[0] for k, v in _NODE_PARAMS.items()})
+    return out
+
+
+def _descriptor(name: str, default) -> ParameterDescriptor:
+    doc = _DOC.get(name) or _NODE_PARAMS[name][1]
+    d = ParameterDescriptor(name=name, description=doc, read_only=name not in RUNTIME)
+    lo_hi = oak.RANGES.get(name) or ((0.0, 3600.0) if name == 'warn_throttle_s' else None)
+    if isinstance(default, bool):
+        d.type = ParameterType.PARAMETER_BOOL
+    elif isinstance(default, int):
+        d.type = ParameterType.PARAMETER_INTEGER
+        if lo_hi:
+            d.integer_range = [IntegerRange(from_value=int(lo_hi[0]), to_value=int(lo_hi[1]),
+                                            step=1)]
+    elif isinstance(default, float):
+        d.type = ParameterType.PARAMETER_DOUBLE
+        if lo_hi:
+            d.floating_point_range = [FloatingPointRange(from_value=float(lo_hi[0]),
+                                                         to_value=float(lo_hi[1]), step=0.0)]
+    else:
+        d.type = ParameterType.PARAMETER_STRING
+    choices = oak.CHOICES.get(name) or (tuple(RELIABILITY) if name == 'publisher_reliability'
+                                        else None)
+    if choices:
+        d.additional_constraints = 'one of: ' + ', '.join(choices)
+    if d.read_only:
+        d.additional_constraints = (d.additional_constraints + '; ' if
+                                    d.additional_constraints else '') + 'needs a restart'
+    return d
+
+
+def validate(values: dict[str, Any]) -> str | None:
+    """Why a full set of parameter values is invalid, or None."""
+    if values['publisher_reliability'] not in RELIABILITY:
+        return (f"publisher_reliability must be one of {', '.join(RELIABILITY)}; "
+                f"got '{values['publisher_reliability']}'")
+    if not str(values['frame_id']).strip():
+        return 'frame_id must not be empty'
+    return oak.validate(oak.config_from_dict(values))
+
+
+SessionFactory = Callable[[str, float], Any]
+
+
+class OakCameraNode(Node):
+    """Publishes OAK stereo depth + camera info (see the module docstring).
+
+    Args:
+        session_factory: ``(device_id, timeout_s) -> session`` (default
+            `oak.open_session` with this node's OakConfig); tests pass host-made sessions.
+        **kwargs: passed to rclpy's Node (context, parameter_overrides, cli_args ...).
+
+    Raises:
+        oak.DeviceNotFoundError: no device at start-up (and not `wait_for_device`).
+        ValueError: invalid parameters.
+    """
+
+    def __init__(self, session_factory: SessionFactory | None = None, **kwargs):
+        super().__init__(NODE_NAME, **kwargs)
+        defaults = parameter_defaults()
+        self.declare_parameters('', [(n, v, _descriptor(n, v)) for n, v in defaults.items()])
+        self._values = {n: self.get_parameter(n).value for n in defaults}
+        reason = validate(self._values)
+        if reason:
+            raise ValueError(f'invalid parameters: {reason}')
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.add_post_set_parameters_callback(self._after_set_parameters)
+        self.cfg = oak.config_from_dict(self._values)
+        self._frame_id = str(self._values['frame_id'])
+
+        self._lock = threading.Lock()
+        self._pending = None            # (DepthFrame, K, D): the one-slot hand-off
+        self._sinks: list[Callable[[Image, CameraInfo], Any]] = []
+        self._throttle: dict[str, float] = {}
+        self._intrinsics: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+        self._checked_sessions: set[int] = set()
+        self.published = 0
+        self.dropped = 0
+        self.last_stamp_ns: int | None = None
+
+        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2,
+                         reliability=RELIABILITY[self._values['publisher_reliability']])
+        self._pub_depth = self.create_publisher(Image, DEPTH_TOPIC, qos)
+        self._pub_info = self.create_publisher(CameraInfo, INFO_TOPIC, qos)
+        self._wake = self.create_guard_condition(self._publish_pending)
+        self._mapper = oak.ClockMapper(lambda: self.get_clock().now().nanoseconds)
+
+        cfg = self.cfg
+        self._open = session_factory or (
+            lambda device_id, timeout_s: oak.open_session(cfg, device_id, timeout_s))
+        session = None
+        if not cfg.wait_for_device:
+            session = self._open(cfg.device_id, cfg.connect_timeout_s)  # raises: no device
+            self._log_connected(session)
+        else:
+            self.get_logger().info('waiting for ' + (f"OAK device '{cfg.device_id}'" if
+                                                     cfg.device_id else 'an OAK device'))
+        self._driver = oak.OakDriver(cfg, session, self._on_frame, self._on_event,
+                                     reopen=lambda dev: self._open(dev, 0.0))
+        self._driver.start()
+
+    # -- public --------------------------------------------------------------------------
+    def add_sink(self, sink: Callable[[Image, CameraInfo], Any]):
+        """Also hand every published (image, camera_info) pair to `sink` (executor thread,
+        the same message objects that were published)."""
+        self._sinks.append(sink)
+
+    @property
+    def driver(self) -> oak.OakDriver:
+        return self._driver
+
+    def stop(self, timeout: float = 5.0) -> bool:
+        """Stop the driver thread and close the device; True when it ended."""
+        return self._driver.stop(timeout)
+
+    def destroy_node(self):
+        self.stop()
+        super().destroy_node()
+
+    # -- parameters ----------------------------------------------------------------------
+    def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
+        new = dict(self._values)
+        for p in params:
+            if p.name in new:
+                new[p.name] = p.value
+        reason = validate(new)
+        return SetParametersResult(successful=reason is None, reason=reason or '')
+
+    def _after_set_parameters(self, params: list[Parameter]):
+        for p in params:
+            if p.name in self._values:
+                self._values[p.name] = p.value
+        self._frame_id = str(self._values['frame_id'])
+
+    # -- logging -------------------------------------------------------------------------
+    def _throttled(self, key: str) -> bool:
+        now = time.monotonic()
+        last = self._throttle.get(key)
+        if last is not None and now - last < self._values['warn_throttle_s']:
+            return False
+        self._throttle[key] = now
+        return True
+
+    def _log_connected(self, session):
+        cfg = self.cfg
+        align = 'CAM_A (colour)' if cfg.align_to_color else 'rectified CAM_C'
+        self.get_logger().info(
+            f"opened {getattr(session, 'description', 'OAK')}: {cfg.width}x{cfg.height} at "
+            f"{cfg.fps:g} fps, preset {cfg.preset}, depth in {align} view, range "
+            f"{cfg.min_range:g}-{cfg.max_range:g} m; publishing '{self._pub_depth.topic_name}'"
+            f" + '{self._pub_info.topic_name}' as '{self._frame_id}'")
+
+    def _on_event(self, kind: str, message: str, info: dict):
+        """Driver-thread events (see oak.OakDriver)."""
+        if not self.context.ok():  # shutting down: rosout is gone
+            return
+        log = self.get_logger()
+        dev = info.get('device_id')
+        what = f"OAK device '{dev}'" if dev else 'OAK device'
+        if kind == 'lost':
+            log.error(f'{what} lost ({message}); reconnecting, first try in '
+                      f'{self.cfg.reconnect_backoff_s:g} s')
+        elif kind == 'retry':
+            if self._throttled('retry'):
+                log.warning(f"{what} not available yet (attempt {info['attempt']}, next in "
+                            f"{info['delay_s']:g} s): {message.split(': ', 1)[-1]}")
+        elif kind == 'reconnected':
+            self._intrinsics.clear()
+            log.info(f"{what} reconnected after {info['outage_s']:.1f} s "
+                     f"({info['attempts']} attempt(s)); publishing again")
+        elif kind == 'connected':
+            self._log_connected(self._driver.session)
+        elif kind == 'frame_error':
+            if self._throttled('frame_error'):
+                log.warning(f'skipped a depth frame: {message}')
+
+    # -- driver thread: convert and hand over ----------------------------------------------
+    def _camera_model(self, session, size: tuple[int, int]):
+        key = (id(session), size)
+        got = self._intrinsics.get(key)
+        if got is None:
+            got = oak.intrinsics(session.calibration, oak.depth_socket(self.cfg), size)
+            if len(self._intrinsics) > 8:
+                self._intrinsics.clear()
+            self._intrinsics[key] = got
+        return got
+
+    def _check_frame_intrinsics(self, frame, session, K: np.ndarray):
+        """Once per session: warn when the frame's own intrinsics disagree with the
+        calibration's (a hint that the published K does not fit the image)."""
+        if id(session) in self._checked_sessions:
+            return
+        self._checked_sessions.add(id(session))
+        Kf = oak.frame_intrinsics(frame)
+        if Kf is None:
+            return
+        rel = np.abs(Kf[:2] - K[:2]).max() / max(K[0, 0], 1.0)
+        if rel > 0.01:
+            self.get_logger().warning(
+                f'the depth frame carries intrinsics fx={Kf[0, 0]:.1f} fy={Kf[1, 1]:.1f} '
+                f'cx={Kf[0, 2]:.1f} cy={Kf[1, 2]:.1f}, the calibration gives fx={K[0, 0]:.1f}'
+                f' fy={K[1, 1]:.1f} cx={K[0, 2]:.1f} cy={K[1, 2]:.1f}; publishing the '
+                'calibration\'s')
+
+    def _on_frame(self, frame, session):
+        depth = oak.frame_to_depth(frame, self._mapper, self.cfg.min_range,
+                                   self.cfg.max_range)
+        K, D = self._camera_model(session, depth.size)
+        self._check_frame_intrinsics(frame, session, K)
+        with self._lock:
+            if self._pending is not None:
+                self.dropped += 1
+            self._pending = (depth, K, D)
+        self._wake.trigger()
+
+    # -- executor thread: build, publish, hand to sinks ------------------------------------
+    def _publish_pending(self):
+        with self._lock:
+            item, self._pending = self._pending, None
+        if item is None:
+            return
+        depth, K, D = item
+        header = A.make_header(stamp_ns=depth.stamp_ns, frame_id=self._frame_id)
+        image = depth_image_msg(depth, header)
+        info = A.camera_info_msg(K, depth.size, header, D=D)
+        self._pub_info.publish(info)
+        self._pub_depth.publish(image)
+        for sink in self._sinks:
+            sink(image, info)
+        self.published += 1
+        self.last_stamp_ns = depth.stamp_ns
+
+
+def depth_image_msg(depth: oak.DepthFrame, header) -> Image:
+    """16UC1 millimetre Image of a DepthFrame (through the shared adapter)."""
+    return A.depth_to_image_msg(depth.depth_m(), header, '16UC1')
+
+
+# -- entry points ----------------------------------------------------------------------
+def _startup_error(name: str, e: Exception) -> int:
+    msg = str(e) if isinstance(e, (oak.DeviceNotFoundError, ValueError)) else \
+        f'{type(e).__name__}: {e}'
+    rclpy.logging.get_logger(name).fatal(msg)
+    return 1
+
+
+def _args(name: str, argv: list[str] | None) -> list[str]:
+    return [name] + (sys.argv[1:] if argv is None else list(argv))
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console script `oak_camera`.
+
+    Args:
+        argv: the command line after the program name (default sys.argv[1:]); ROS
+            arguments follow `--ros-args` as with `ros2 run`.
+    """
+    args = _args(NODE_NAME, argv)
+    rclpy.init(args=args)
+    node = None
+    code = 0
+    try:
+        extra = rclpy.utilities.remove_ros_args(args)[1:]
+        if extra:
+            print(f'oak_camera: ignoring unknown arguments {extra}', file=sys.stderr)
+        node = OakCameraNode()
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except Exception as e:  # start-up failure: one line, no traceback
+        code = _startup_error(NODE_NAME, e)
+    finally:
+        if node is not None:
+            if not node.stop():
+                node.get_logger().warning('the device thread did not stop in time')
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+def feed_reconstructor(reconstructor) -> Callable[[Image, CameraInfo], None]:
+    """A camera sink that hands the message objects straight to a ReconstructorNode's
+    camera_info and depth callbacks (no serialisation)."""
+    def sink(image: Image, info: CameraInfo):
+        reconstructor._on_camera_info(info)
+        reconstructor._on_depth(image)
+    return sink
+
+
+def make_reconstruct_oak(session_factory: SessionFactory | None = None,
+                         reconstructor_factory=None, **node_kwargs):
+    """(camera, reconstructor) nodes wired for `reconstruct_oak` (not yet spinning).
+
+    The camera is opened first, so a missing device fails before the models load.
+    """
+    from smpl_depth_ros.ros.reconstructor_node import ReconstructorNode
+
+    camera = OakCameraNode(session_factory=session_factory, **node_kwargs)
+    try:
+        rec = ReconstructorNode(reconstructor_factory=reconstructor_factory, **node_kwargs)
+    except BaseException:
+        camera.destroy_node()
+        raise
+    camera.add_sink(feed_reconstructor(rec))
+    rec.get_logger().info(f"fed directly by '{camera.get_fully_qualified_name()}' (the "
+                          'published message objects, no serialisation); its own '
+                          'subscriptions stay open to other publishers')
+    return camera, rec
+
+
+def main_with_reconstructor(argv: list[str] | None = None) -> int:
+    """Console script `reconstruct_oak`: oak_camera + reconstructor in one process.
+
+    Both nodes read the same command line (`--ros-args -p ...`, `--params-file ...`); their
+    parameter names do not overlap except warn_throttle_s.
+    """
+    name = 'reconstruct_oak'
+    args = _args(name, argv)
+    rclpy.init(args=args)
+    nodes = []
+    executor = None
+    code = 0
+    try:
+        extra = rclpy.utilities.remove_ros_args(args)[1:]
+        if extra:
+            print(f'{name}: ignoring unknown arguments {extra}', file=sys.stderr)
+        nodes = list(make_reconstruct_oak())
+        executor = MultiThreadedExecutor(num_threads=2)
+        for n in nodes:
+            executor.add_node(n)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except Exception as e:  # start-up failure: one line, no traceback
+        code = _startup_error(name, e)
+    finally:
+        for n in reversed(nodes):  # reconstructor first: its worker stops taking frames
+            if not n.stop():
+                n.get_logger().warning('a worker thread did not stop in time')
+        if executor is not None:
+            shutdown_executor(executor)
+        for n in reversed(nodes):
+            n.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+def shutdown_executor(executor, timeout_sec: float = 5.0):
+    """Shut down an executor that is no longer spinning.
+
+    A MultiThreadedExecutor's thread pool is drained first: a callback still running there
+    triggers the executor's guard condition when it ends, which Jazzy's `shutdown` destroys
+    without waiting for it ('cannot use Destroyable' at exit otherwise).
+    """
+    pool = getattr(executor, '_executor', None)  # MultiThreadedExecutor's ThreadPoolExecutor
+    if pool is not None and hasattr(pool, 'shutdown'):
+        pool.shutdown(wait=True)
+    executor.shutdown(timeout_sec=timeout_sec)
+
+
+if __name__ == '__main__':
+    sys.exit(main())
