@@ -96,6 +96,8 @@ class Core:
         self.delay = delay
         self.calls = 0
         self.resets = 0
+        self.busy = False
+        self.durations: list[float] = []  # wall time of each process() call (s)
 
     @property
     def body(self):
@@ -117,10 +119,16 @@ class Core:
         return getattr(self._rec, name)
 
     def process(self, depth, K, stamp_ns=None):
-        if self.delay:
-            time.sleep(self.delay)
-        self.calls += 1
-        return self._rec.process(depth, K, stamp_ns=stamp_ns)
+        self.busy = True
+        t0 = time.monotonic()
+        try:
+            if self.delay:
+                time.sleep(self.delay)
+            self.calls += 1
+            return self._rec.process(depth, K, stamp_ns=stamp_ns)
+        finally:
+            self.durations.append(time.monotonic() - t0)
+            self.busy = False
 
     def reset(self):
         self.resets += 1
@@ -346,40 +354,51 @@ def test_outputs_copy_header_and_match_model(harness, core, scene):
 
 
 def test_burst_against_slow_worker(harness, core, scene):
-    core.delay = 0.4  # deliberately slow: well under the 30 Hz input
+    core.delay = 0.3  # deliberately slow: far below the 30 Hz input
     node, tester = harness()
     send_until(tester, scene, 'mesh', 30.0)  # warm up
+
+    def idle():
+        return not core.busy and node._mailbox.pending() == 0
+
+    assert wait_for(idle, 30.0)
     tester.clear()
+    calls0 = len(core.durations)
     sent = {}
-    t_end = time.monotonic() + 4.0
+    t0 = time.monotonic()
     i = 0
-    while time.monotonic() < t_end:
+    # 30 Hz until 5 outputs came back (at least 3 s, at most 40 s).
+    while time.monotonic() - t0 < 40.0 and (time.monotonic() - t0 < 3.0 or
+                                            tester.count('mesh') < 5):
         s = tester.now_ns()
         sent[s] = time.monotonic()
         tester.pub_depth.publish(scene.depth_msg(i, s))
         i += 1
         time.sleep(1 / 30)
-    assert wait_for(lambda: node._mailbox.pending() == 0, 5.0)
-    time.sleep(0.5)
+    assert wait_for(idle, 30.0)
+    time.sleep(0.3)
     with tester.lock:
         got = [(t, A.stamp_to_ns(m.header.stamp)) for t, m in tester.got['mesh']]
     lat = np.array([t - sent[s] for t, s in got if s in sent])
-    assert len(lat) >= 4, 'too few outputs'
-    # Bounded latency: the slow worker's own time, never a backlog (a queue of 120 frames
-    # at 0.4 s each would reach tens of seconds); no growth from the first to the last.
-    per_frame = 4.0 / max(len(lat), 1)
-    assert lat.max() < 2.5 * per_frame + 0.5, (lat, per_frame)
-    third = max(1, len(lat) // 3)
-    assert np.median(lat[-third:]) < np.median(lat[:third]) + per_frame, lat
-    # Fewer outputs than inputs; the rest counted as dropped, nothing queued.
-    assert len(lat) < i / 2
+    assert len(lat) >= 3, f'too few outputs: {len(lat)} for {i} frames'
+    # Bounded latency: at most one frame waiting (the one being processed) plus its own
+    # processing, whatever the burst length; a queue would grow by ~1 s per second.
+    service = max(core.durations[calls0:])  # one process() call, the delay included
+    bound = 2 * service + 0.5
+    assert lat.max() < bound, (lat, service)
+    assert lat[-1] < np.median(lat[:max(1, len(lat) // 3)]) + service, lat
+    # Fewer outputs than inputs, the rest dropped and counted; every frame accounted for.
+    assert len(lat) < i / 3
+    with node._lock:
+        received, processed = node._stats['received'], node._stats['processed']
+        rejected = sum(node._errors.values())
     assert node._mailbox.dropped > 0
-    assert node._mailbox.pending() == 0
-    assert wait_for(lambda: (tester.summary() or {}).get('frames_dropped', '0') != '0', 3.0)
+    assert received == processed + rejected + node._mailbox.dropped
+    assert wait_for(lambda: int((tester.summary() or {}).get('frames_dropped', 0)) ==
+                    node._mailbox.dropped, 3.0)
     summary = tester.summary()
-    assert int(summary['frames_dropped']) == node._mailbox.dropped or \
-        int(summary['frames_dropped']) > 0
-    assert float(summary['latency_receive_ms_max']) < (2.5 * per_frame + 0.5) * 1e3
+    assert summary['frames_pending'] == '0'
+    assert float(summary['latency_receive_ms_max']) < bound * 1e3
 
 
 BAD_INPUTS = ['encoding', 'size_mismatch', 'truncated', 'all_zero', 'all_nan', 'no_person',
@@ -545,7 +564,7 @@ def synth_bag(tmp_path_factory):
     from smpl_depth_ros.bagio import jazzy_typestore
     from smpl_depth_ros.tools import synth_bag as tool
     out = tmp_path_factory.mktemp('bag') / 'seq'
-    assert tool.main(['--out', str(out), '--frames', '3', '--seed', '5', '--sequence']) == 0
+    assert tool.main(['--out', str(out), '--frames', '3', '--seed', '3', '--sequence']) == 0
     gt = dict(np.load(tool.gt_path(str(out))))
     with AnyReader([out], default_typestore=jazzy_typestore()) as reader:
         raw = [(c.topic, c.msgtype, bytes(data)) for c, _, data in reader.messages()]
@@ -630,8 +649,9 @@ def test_subprocess_bag_frames_params_file_and_sigint(rclpy_context, real_core, 
                            torch.as_tensor(p['global_orient'])[None],
                            torch.as_tensor(p['transl'])[None])
             np.testing.assert_allclose(out.vertices[0].numpy(), v, atol=2e-3)
-        # Mean vertex error (same topology) against the bag's ground truth.
-        assert np.median(errors) < 0.10, errors
+        # Mean vertex error (same topology) against the bag's ground truth: the node hands
+        # the core's fit on unchanged (the core's own accuracy is tested with the core).
+        assert np.median(errors) < 0.06 and max(errors) < 0.10, errors
         assert wait_for(lambda: tester.summary() is not None, 5.0)
         summary = tester.summary()
         assert summary['model'] == body.name and summary['device'] == 'cpu'
@@ -649,6 +669,23 @@ def test_subprocess_sigterm_and_bad_startup_params(rclpy_context, real_core):
     code, out, err = stop_node(proc, None, timeout=60.0)
     assert code == 1, (code, err)
     assert 'depth_min' in err and 'Traceback' not in err, err
+    # SIGINT while the model loads: clean exit.
+    proc = start_node('-p', 'device:=cpu')
+    lines = []
+
+    def read_until_loading():
+        for line in proc.stderr:
+            lines.append(line)
+            if 'loading the' in line:
+                return
+
+    reader = threading.Thread(target=read_until_loading, daemon=True)
+    reader.start()
+    reader.join(60.0)
+    assert any('loading the' in x for x in lines), lines
+    code, out, err = stop_node(proc, signal.SIGINT)
+    assert code == 0, ''.join(lines) + err
+    assert 'Traceback' not in ''.join(lines) + err
     # SIGTERM while idle: clean exit.
     proc = start_node('-r', '__ns:=/st', '-p', 'device:=cpu')
     node = rclpy.create_node('probe', context=rclpy_context)
@@ -673,16 +710,31 @@ def _flatten(d: dict, prefix: str = '') -> dict:
     return out
 
 
+def test_print_params(capsys):
+    import yaml
+    from smpl_depth_ros.ros.reconstructor_node import main, parameter_defaults
+    assert main(['--print-params']) == 0
+    printed = _flatten(yaml.safe_load(capsys.readouterr().out)['/**']['ros__parameters'])
+    assert printed == parameter_defaults()
+
+
 def test_params_file_mirrors_defaults():
     import yaml
     from smpl_depth_ros.ros.reconstructor_node import parameter_defaults, validate
     data = yaml.safe_load(PARAMS_FILE.read_text())
     values = _flatten(data['/**']['ros__parameters'])
     defaults = parameter_defaults()
-    assert set(values) == set(defaults)
+    missing = {k: v for k, v in defaults.items() if k not in values}
+    extra = sorted(set(values) - set(defaults))
+    assert not missing and not extra, (
+        f'config/reconstructor.yaml is out of date with PipelineConfig/FitConfig: add '
+        f'{missing}, remove {extra} (regenerate: reconstructor --print-params > '
+        f'config/reconstructor.yaml)')
     for k, v in defaults.items():
         assert type(values[k]) is type(v), k        # a double stays a double, etc.
-        assert values[k] == pytest.approx(v) if isinstance(v, float) else values[k] == v, k
+        assert values[k] == pytest.approx(v) if isinstance(v, float) else values[k] == v, \
+            f'{k}: {values[k]!r} in the params file, default {v!r} (regenerate: ' \
+            'reconstructor --print-params > config/reconstructor.yaml)'
     assert validate(values) is None
 
 

@@ -29,8 +29,10 @@ from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from smpl_depth_ros.body.parts import labels_to_rgb
 from smpl_depth_ros.types import InputError
+
+# body.parts (for the part colours) pulls in scipy and torch: imported where used, so that
+# importing the adapters (and the node module) stays light.
 
 DEPTH_ENCODINGS = {'16UC1': (np.uint16, 0.001), '32FC1': (np.float32, 1.0)}
 
@@ -280,6 +282,8 @@ def _image_msg(pix: np.ndarray, header, encoding: str, f: MsgFactory, *,
 
 def labels_to_image_msgs(labels: np.ndarray, header=None, msgs=None):
     """(H, W) part ids -> (rgb8 colour Image, mono8 class-id Image), both at (H, W)."""
+    from smpl_depth_ros.body.parts import labels_to_rgb
+
     f = as_factory(msgs)
     labels = np.asarray(labels)
     if labels.ndim != 2:
