@@ -204,10 +204,12 @@ class Fitter:
                 sel = torso
         s, d = src[sel], points[sel]
         w = torch.ones(len(s), dtype=s.dtype, device=s.device)
-        for _ in range(4):
+        for sig in (0.3, 0.2, 0.12, 0.08, 0.05, 0.05):
+            # Reweighted Kabsch with a shrinking Geman-McClure scale: robust to wrong
+            # correspondences, and to the non-rigid (posed) part of the torso region.
             R, t = _kabsch(s, d, w)
             r2 = ((s @ R.T + t - d) ** 2).sum(-1)
-            w = objective.gm_weights(r2, max(self.cfg.gm_sigma, 0.1))
+            w = objective.gm_weights(r2, sig)
         root = out.joints[0, 0]
         transl = t + R @ root - root
         return lbs.matrix_to_axis_angle(R), transl

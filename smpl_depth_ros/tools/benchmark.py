@@ -44,6 +44,7 @@ def bench_fit(args) -> dict:
     fitter = Fitter(body)
     rng = np.random.default_rng(0)
     stamps = list(gt['stamps'])
+    sequence = bool(gt.get('sequence', False))
     rows = {k: [] for k in ('fast_cold', 'fast_tracking', 'lbfgs_cold', 'gt_joints_fast',
                             'fast_cold_30pct_outliers')}
     Vs, Js = [], []
@@ -64,9 +65,10 @@ def bench_fit(args) -> dict:
         Js.append(gt['joints'][i])
         cold = fitter.fit(pts, ids)
         rows['fast_cold'].append(cold)
-        tr = fitter.fit(pts, ids, init=prev) if prev is not None else cold
-        rows['fast_tracking'].append(tr)
-        prev = tr.params
+        if sequence:  # tracking is only meaningful on smooth sequences
+            tr = fitter.fit(pts, ids, init=prev) if prev is not None else cold
+            rows['fast_tracking'].append(tr)
+            prev = tr.params
         if n < args.lbfgs_frames:
             rows['lbfgs_cold'].append(fitter.fit(pts, ids, solver='lbfgs'))
         rows['gt_joints_fast'].append(fitter.fit_joints(gt['joints'][i]))
