@@ -100,7 +100,7 @@ class BodyModel(torch.nn.Module):
 
     @property
     def num_vertices(self) -> int:
-        return int(self.faces.max()) + 1 if self.faces.numel() else 0
+        return int(self.template_vertices.shape[0])
 
     @property
     def device(self) -> torch.device:

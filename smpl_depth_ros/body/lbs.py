@@ -50,7 +50,6 @@ def forward_kinematics(rot: torch.Tensor, heads: torch.Tensor, parents: torch.Te
         G (B, J, 3, 3), x (B, J, 3).
     """
     B, J = rot.shape[:2]
-    G = [None] * J
     G = rot.new_empty(B, J, 3, 3)
     x = heads.new_empty(B, J, 3)
     r0 = levels[0]

@@ -7,6 +7,9 @@
         row 1), and the fast solver with 30 % of the correspondences replaced by wrong
         vertices. Metrics per row: pve_mm, pa_pve_mm, mpjpe_mm, fit_ms_median,
         fit_ms_p95, iterations_mean, frames.
+
+    benchmark net [--repeats 50] [--json out.json]
+        Network (double and single U-Net) and Eq. 2 lookup time per 128x128 crop.
 """
 from __future__ import annotations
 
@@ -91,6 +94,42 @@ def bench_fit(args) -> dict:
     return out
 
 
+def bench_net(args) -> dict:
+    """Network + Eq. 2 lookup time per crop on this machine (batch 1, after warm-up)."""
+    import time
+
+    import torch
+    torch.set_num_threads(args.threads or max(1, os.cpu_count() or 1))
+    from smpl_depth_ros.body import load_body_model
+    from smpl_depth_ros.net.data import make_fixed_set
+    from smpl_depth_ros.net.infer import CorrespondenceNet
+    body = load_body_model('anny')
+    out = {}
+    x, _, _, _ = make_fixed_set(body, 8, seed=5)
+    x = x.numpy()
+    for kind in ('double', 'single'):
+        from smpl_depth_ros.net.infer import default_weights
+        net = CorrespondenceNet(body, default_weights('anny', kind))
+        for i in range(3):
+            net.predict(x[i:i + 1])
+        tn, tl = [], []
+        for k in range(args.repeats):
+            xi = x[k % len(x):k % len(x) + 1]
+            t0 = time.perf_counter()
+            lab, co = net.predict(xi)
+            t1 = time.perf_counter()
+            fg = (lab[0] > 0) & (xi[0, 1] > 0)
+            net.lookup(lab[0], co[0], fg)
+            tl.append((time.perf_counter() - t1) * 1e3)
+            tn.append((t1 - t0) * 1e3)
+        out[kind] = dict(net_ms_median=float(np.median(tn)), net_ms_p95=float(np.percentile(tn, 95)),
+                         lookup_ms_median=float(np.median(tl)),
+                         params=int(sum(p.numel() for p in net.net.parameters())))
+    out['threads'] = torch.get_num_threads()
+    out['device'] = 'cpu'
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog='benchmark', description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -103,7 +142,19 @@ def main(argv=None) -> int:
     f.add_argument('--lbfgs-frames', type=int, default=30,
                    help='frames for the (slow) L-BFGS reference')
     f.add_argument('--json', default=None)
+    nb = sub.add_parser('net', help='network + correspondence lookup time per crop')
+    nb.add_argument('--repeats', type=int, default=50)
+    nb.add_argument('--threads', type=int, default=0)
+    nb.add_argument('--json', default=None)
     args = ap.parse_args(argv)
+    if args.cmd == 'net':
+        out = bench_net(args)
+        if args.json:
+            os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
+            with open(args.json, 'w') as fh:
+                json.dump(out, fh, indent=1)
+        print(json.dumps(out))
+        return 0
     out = bench_fit(args)
     rows = [v for v in out.values() if isinstance(v, dict)]
     print(f'{"method":26s} {"PVE mm":>7s} {"PA-PVE":>7s} {"MPJPE":>7s} {"ms p50":>7s} '
