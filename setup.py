@@ -50,7 +50,7 @@ setup(
     name=package_name,
     version='0.1.0',
     packages=find_packages(exclude=['test']),
-    package_data={package_name: ['data/*.safetensors', 'data/*.pt', 'data/*.json',
+    package_data={package_name: ['data/*.safetensors', 'data/*.pt', 'data/*.json', 'data/*.npz',
                                  'data/sample_bag/*', 'data/sample_bag/**/*']},
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
@@ -65,7 +65,6 @@ setup(
     maintainer_email='maintainers@smpl-depth-ros.invalid',
     description='3D human body reconstruction from a single depth image, for ROS 2 Jazzy.',
     license='Apache-2.0',
-    tests_require=['pytest'],
     entry_points={
         'console_scripts': [f'{k} = {v}' for k, v in EXECUTABLES.items()],
     },

@@ -12,8 +12,7 @@ from smpl_depth_ros.net.infer import CorrespondenceNet, default_weights
 from smpl_depth_ros.net.preprocess import crop_depth, find_persons, network_input
 from smpl_depth_ros.net.unet import INPUT_SIZE, build_network
 
-REAL = os.path.join(os.path.dirname(__file__), '..', '..', 'shared', 'data', 'real',
-                    'five_people_depth_mm.png')
+REAL = os.path.join(os.path.dirname(__file__), 'data', 'five_people_depth_mm.png')
 K_KINECT = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]])
 
 
