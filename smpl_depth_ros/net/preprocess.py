@@ -200,13 +200,26 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
     lab, n = ndimage.label(fg & ~edge)
     if n == 0:
         return []
-    sizes = ndimage.sum_labels(np.ones_like(lab), lab, index=np.arange(1, n + 1))
+    idx = np.arange(1, n + 1)
+    sizes = ndimage.sum_labels(np.ones_like(lab), lab, index=idx)
+    meds = ndimage.median(d, lab, index=idx)
+    slices = ndimage.find_objects(lab)
     crops = []
+    used = np.zeros(n + 1, bool)
     for k in np.argsort(-sizes):
         if sizes[k] < min_pixels:
             break
-        m = lab == (k + 1)
-        # Grow back the edge pixels adjacent to the blob at similar depth.
+        if used[k + 1]:
+            continue
+        # Self-occlusion (an arm in front of the torso) cuts a person into several
+        # components: merge the smaller ones inside the (expanded) box at a similar depth.
+        sl = slices[k]
+        r0, r1, c0, c1 = sl[0].start, sl[0].stop, sl[1].start, sl[1].stop
+        pad_r, pad_c = (r1 - r0) // 8 + 2, (c1 - c0) // 4 + 2
+        box = lab[max(r0 - pad_r, 0):r1 + pad_r, max(c0 - pad_c, 0):c1 + pad_c]
+        near = [j for j in np.unique(box) if j > 0 and j != k + 1 and not used[j]
+                and sizes[j - 1] < 0.6 * sizes[k] and abs(meds[j - 1] - meds[k]) < 0.3]
+        m = np.isin(lab, [k + 1] + near)
         rr, cc = np.nonzero(m)
         zz = d[rr, cc]
         med = float(np.median(zz))
@@ -215,6 +228,8 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
         height, width = hi[1] - lo[1], max(hi[0] - lo[0], hi[2] - lo[2])
         if not (0.4 <= height <= 2.6 and width <= 1.6):
             continue
+        used[[k + 1] + near] = True
+        # Grow back the edge pixels adjacent to the blob at similar depth.
         grown = ndimage.binary_dilation(m, iterations=3) & valid & (np.abs(d - med) < 0.8)
         crops.append((float(np.hypot(cc.mean() - W / 2, rr.mean() - H / 2)),
                       square_crop(cc.min(), rr.min(), cc.max(), rr.max(), median_depth=med,
