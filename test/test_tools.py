@@ -1,0 +1,40 @@
+"""The figure-producing commands run end to end and write the documented JSON keys."""
+import json
+
+import pytest
+
+from smpl_depth_ros.tools import benchmark, evaluate, synth_bag
+
+
+@pytest.fixture(scope='module')
+def bag(tmp_path_factory):
+    path = str(tmp_path_factory.mktemp('bags') / 'tiny')
+    assert synth_bag.main(['--out', path, '--frames', '3', '--seed', '11']) == 0
+    return path
+
+
+def test_evaluate_writes_table_ii_json(bag, tmp_path):
+    out = tmp_path / 'eval.json'
+    assert evaluate.main([bag, '--json', str(out), '--figures', str(tmp_path / 'fig'),
+                          '--figure-frames', '0']) == 0
+    res = json.loads(out.read_text())
+    for key in ('pve_mm', 'pa_pve_mm', 'mpjpe_mm', 'miou', 'corr_err_cm_median',
+                'net_ms_median', 'fit_ms_median', 'frames'):
+        assert key in res, key
+    assert res['frames'] == 3
+    assert set(res['ablation']) == {'gt_joints+fit', 'single_unet+fit', 'double_unet+fit',
+                                    'gt_corr+fit'}
+    assert res['ablation']['gt_corr+fit']['pve_mm'] < 60
+    assert (tmp_path / 'fig' / 'fig3_0000.png').exists()
+
+
+def test_benchmark_fit_writes_json(bag, tmp_path):
+    out = tmp_path / 'fit.json'
+    assert benchmark.main(['fit', bag, '--frames', '2', '--lbfgs-frames', '1',
+                           '--json', str(out)]) == 0
+    res = json.loads(out.read_text())
+    for row in ('fast_cold', 'lbfgs_cold', 'gt_joints_fast', 'fast_cold_30pct_outliers'):
+        for key in ('pve_mm', 'pa_pve_mm', 'mpjpe_mm', 'fit_ms_median', 'fit_ms_p95',
+                    'frames'):
+            assert key in res[row], (row, key)
+    assert res['fast_cold']['pve_mm'] < 60
