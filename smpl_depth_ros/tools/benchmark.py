@@ -10,6 +10,10 @@
 
     benchmark net [--repeats 50] [--json out.json]
         Network (double and single U-Net) and Eq. 2 lookup time per 128x128 crop.
+
+    benchmark node BAG [--frames 2000] [--rate 30] [--json out.json]
+        A `reconstructor` subprocess fed at 30 Hz over loopback DDS (localhost discovery,
+        private domain): output rate, stamp-to-output latency p50/p95, drops, RSS growth.
 """
 from __future__ import annotations
 
@@ -130,6 +134,102 @@ def bench_net(args) -> dict:
     return out
 
 
+def bench_node(args) -> dict:
+    """Drive a `reconstructor` subprocess with a 30 Hz depth stream over loopback DDS.
+
+    Measures the node's sustained output rate (~/mesh), stamp-to-receive latency of each
+    output, the node's dropped-frame behaviour (offered vs answered) and its resident memory
+    at the start and the end of the run (VmRSS from /proc).
+    """
+    import random
+    import subprocess
+    import time
+
+    # DDS stays on this machine; a private domain keeps parallel runs apart.
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    os.environ.setdefault('ROS_DOMAIN_ID', str(random.randint(30, 99)))
+    import rclpy
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import CameraInfo, Image
+    from visualization_msgs.msg import Marker
+
+    from smpl_depth_ros.bagio import iter_depth_bag
+    from smpl_depth_ros.ros import adapters
+
+    frames = [(d, K) for _, d, K in iter_depth_bag(args.bag)][:30]
+    H, W = frames[0][0].shape
+    exe = [sys.executable, '-m', 'smpl_depth_ros.ros.reconstructor_node', '--ros-args',
+           '-r', 'depth:=/bench/depth', '-r', 'camera_info:=/bench/camera_info',
+           '-p', 'qos_reliability:=reliable', '-p', 'device:=cpu']
+    proc = subprocess.Popen(exe, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+    def rss_mb():
+        with open(f'/proc/{proc.pid}/status') as f:
+            for line in f:
+                if line.startswith('VmRSS'):
+                    return int(line.split()[1]) / 1024
+        return float('nan')
+
+    rclpy.init()
+    node = rclpy.create_node('bench_node_driver')
+    qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
+    pub_d = node.create_publisher(Image, '/bench/depth', qos)
+    pub_i = node.create_publisher(CameraInfo, '/bench/camera_info', qos)
+    lat, recv_t = [], []
+
+    def on_mesh(msg):
+        now = node.get_clock().now().nanoseconds
+        lat.append((now - adapters.stamp_to_ns(msg.header.stamp)) * 1e-6)
+        recv_t.append(time.monotonic())
+    node.create_subscription(Marker, '/reconstructor/mesh', on_mesh, 10)
+    msgs = [adapters.depth_to_image_msg(d, encoding='16UC1') for d, _ in frames]
+    infos = [adapters.camera_info_msg(K, (W, H)) for _, K in frames]
+    # Wait for the node to be up (first output).
+    t0 = time.monotonic()
+    while not lat and time.monotonic() - t0 < 120:
+        hdr = adapters.make_header(stamp_ns=node.get_clock().now().nanoseconds,
+                                   frame_id='camera_depth_optical_frame')
+        infos[0].header = hdr
+        msgs[0].header = hdr
+        pub_i.publish(infos[0])
+        pub_d.publish(msgs[0])
+        rclpy.spin_once(node, timeout_sec=0.2)
+    lat.clear()
+    recv_t.clear()
+    rss0 = rss_mb()
+    period = 1.0 / args.rate
+    start = time.monotonic()
+    for k in range(args.frames):
+        target = start + k * period
+        while time.monotonic() < target:
+            rclpy.spin_once(node, timeout_sec=max(0.0, target - time.monotonic()))
+        hdr = adapters.make_header(stamp_ns=node.get_clock().now().nanoseconds,
+                                   frame_id='camera_depth_optical_frame')
+        i = k % len(msgs)
+        infos[i].header = hdr
+        msgs[i].header = hdr
+        pub_i.publish(infos[i])
+        pub_d.publish(msgs[i])
+    end = time.monotonic() + 2.0
+    while time.monotonic() < end:
+        rclpy.spin_once(node, timeout_sec=0.05)
+    rss1 = rss_mb()
+    proc.send_signal(2)
+    try:
+        proc.wait(timeout=20)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+    node.destroy_node()
+    rclpy.try_shutdown()
+    dur = (recv_t[-1] - recv_t[0]) if len(recv_t) > 1 else float('nan')
+    return dict(input_rate_hz=args.rate, frames_offered=args.frames, image=f'{W}x{H}',
+                outputs=len(lat), output_rate_hz=(len(lat) - 1) / dur if len(lat) > 1 else 0.0,
+                latency_ms_p50=float(np.percentile(lat, 50)) if lat else float('nan'),
+                latency_ms_p95=float(np.percentile(lat, 95)) if lat else float('nan'),
+                dropped=args.frames - len(lat), rss_mb_start=rss0, rss_mb_end=rss1,
+                rss_growth_mb=rss1 - rss0)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog='benchmark', description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -146,9 +246,14 @@ def main(argv=None) -> int:
     nb.add_argument('--repeats', type=int, default=50)
     nb.add_argument('--threads', type=int, default=0)
     nb.add_argument('--json', default=None)
+    nd = sub.add_parser('node', help='reconstructor node under a 30 Hz depth stream')
+    nd.add_argument('bag', help='depth bag (e.g. from synth_bag); up to 30 frames cycled')
+    nd.add_argument('--frames', type=int, default=2000)
+    nd.add_argument('--rate', type=float, default=30.0)
+    nd.add_argument('--json', default=None)
     args = ap.parse_args(argv)
-    if args.cmd == 'net':
-        out = bench_net(args)
+    if args.cmd in ('net', 'node'):
+        out = bench_net(args) if args.cmd == 'net' else bench_node(args)
         if args.json:
             os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
             with open(args.json, 'w') as fh:
