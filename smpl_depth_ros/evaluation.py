@@ -1,7 +1,19 @@
 """Accuracy metrics (no ROS): paper Eq. 5 and friends."""
 from __future__ import annotations
 
+import json
+import os
+
 import numpy as np
+
+
+def write_json(out: dict, path: str | None) -> None:
+    """Write `out` to `path` (if given) and print it as one JSON line (the tools' output)."""
+    if path:
+        os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+        with open(path, 'w') as fh:
+            json.dump(out, fh, indent=1)
+    print(json.dumps(out))
 
 
 def pve(pred: np.ndarray, gt: np.ndarray, valid: np.ndarray | None = None) -> float:

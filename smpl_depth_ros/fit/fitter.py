@@ -321,6 +321,15 @@ class Fitter:
             ds = sh[0] - s0
             return r0 + A @ ds, h0 + B @ ds
         rest_cache = rest_at(shape)
+
+        def evaluate_state(rot, transl, rest_cache):
+            """Posed points, residuals and pose-prior terms at one solver state."""
+            rp, heads = rest_cache
+            v, vk, G, x = self._pose_points(rot, rp, w, idx, heads, vids)
+            e = v + transl - pts
+            aa = lbs.matrix_to_axis_angle(rot[1:])
+            viol = objective.limit_violation(aa @ Cm.T, lim)
+            return v, vk, G, x, e, (e * e).sum(-1), aa, viol
         it = 0
         for it in range(1, iterations + 1):
             if not fix_shape:
@@ -329,13 +338,8 @@ class Fitter:
                     r0, A, h0, B, w, idx = self._rest_linear(shape, ids, joints)
                     s0 = shape[0].clone()
                 rest_cache = rest_at(shape)
-            rp, heads = rest_cache
-            v, vk, G, x = self._pose_points(rot, rp, w, idx, heads, vids)
-            e = v + transl - pts
-            sq = (e * e).sum(-1)
-            aa = lbs.matrix_to_axis_angle(rot[1:])
-            canon = aa @ Cm.T
-            viol = objective.limit_violation(canon, lim)
+            st = evaluate_state(rot, transl, rest_cache)
+            v, vk, G, x, e, sq, aa, viol = st
             sigma = sigma_at(it)
             if prev is not None and sigma != prev_sigma:
                 prev = None  # energies at different scales are not comparable
@@ -346,19 +350,13 @@ class Fitter:
                   + cfg.lambda_pose_l2 * (aa ** 2).sum()
                   + cfg.lambda_shape * (((shape[0] - body.shape_mean) / body.shape_std) ** 2).sum())
             if prev is not None and en > prev[0]:
-                # Reject the step: restore and damp more (Levenberg-Marquardt).
-                _, rot, transl, shape, rest_cache = prev
+                # Reject the step: restore the last accepted state and damp more (LM).
+                _, rot, transl, shape, rest_cache, st = prev
+                v, vk, G, x, e, sq, aa, viol = st
                 mu *= 10
-                rp, heads = rest_cache
-                v, vk, G, x = self._pose_points(rot, rp, w, idx, heads, vids)
-                e = v + transl - pts
-                sq = (e * e).sum(-1)
-                aa = lbs.matrix_to_axis_angle(rot[1:])
-                canon = aa @ Cm.T
-                viol = objective.limit_violation(canon, lim)
             else:
                 mu = max(mu / 3, 1e-6)
-                prev = (en, rot, transl, shape, rest_cache)
+                prev = (en, rot, transl, shape, rest_cache, st)
             # IRLS weights of the Geman-McClure term.
             om = objective.gm_weights(sq, sigma) * cfg.lambda_data / wsum
             if wts is not None:

@@ -18,11 +18,12 @@
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 
 import numpy as np
+
+from smpl_depth_ros.evaluation import write_json
 
 
 def _row(name, results, gts):
@@ -254,11 +255,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.cmd in ('net', 'node'):
         out = bench_net(args) if args.cmd == 'net' else bench_node(args)
-        if args.json:
-            os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
-            with open(args.json, 'w') as fh:
-                json.dump(out, fh, indent=1)
-        print(json.dumps(out))
+        write_json(out, args.json)
         return 0
     out = bench_fit(args)
     rows = [v for v in out.values() if isinstance(v, dict)]
@@ -268,11 +265,7 @@ def main(argv=None) -> int:
         print(f'{r["method"]:26s} {r["pve_mm"]:7.1f} {r["pa_pve_mm"]:7.1f} {r["mpjpe_mm"]:7.1f} '
               f'{r["fit_ms_median"]:7.1f} {r["fit_ms_p95"]:7.1f} {r["iterations_mean"]:6.1f} '
               f'{r["frames"]:6d}')
-    if args.json:
-        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
-        with open(args.json, 'w') as fh:
-            json.dump(out, fh, indent=1)
-    print(json.dumps(out))
+    write_json(out, args.json)
     return 0
 
 

@@ -16,13 +16,13 @@ from the means and counted).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 
 import numpy as np
 
 from smpl_depth_ros import evaluation as ev
+from smpl_depth_ros.evaluation import write_json
 
 
 def _load_gt(bag: str, gt_path: str | None):
@@ -161,11 +161,7 @@ def main(argv=None) -> int:
               f'{v.get("miou", float("nan")):6.3f} {v.get("corr_err_cm_median", float("nan")):8.2f} '
               f'{v.get("net_ms_median", float("nan")):7.1f} {v["fit_ms_median"]:7.1f} '
               f'{v["failures"]:5d}')
-    if args.json:
-        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
-        with open(args.json, 'w') as f:
-            json.dump(out, f, indent=1)
-    print(json.dumps(out))
+    write_json(out, args.json)
     return 0
 
 
