@@ -59,7 +59,7 @@ setup(
         ('lib/' + package_name, _write_wrappers()),
     ],
     install_requires=['setuptools', 'numpy', 'scipy', 'torch', 'trimesh', 'rosbags',
-                      'anny', 'safetensors', 'tqdm', 'pillow'],
+                      'anny', 'safetensors', 'tqdm', 'pillow', 'roma', 'threadpoolctl'],
     zip_safe=False,
     maintainer='smpl_depth_ros maintainers',
     maintainer_email='maintainers@smpl-depth-ros.invalid',

@@ -105,3 +105,20 @@ def test_joint_baseline_and_lbfgs_reference(body):
     assert _pve(rj, V) < 0.06
     rl = fit.fit(V[front], front, solver='lbfgs')
     assert rl.solver == 'lbfgs' and np.isfinite(rl.energy) and rl.iterations > 0
+
+
+def test_aggregate_by_vertex_is_robust():
+    from smpl_depth_ros.fit.fitter import aggregate_by_vertex
+    rng = np.random.default_rng(3)
+    # Vertex 7: 40 points around (1, 2, 3) plus 12 gross outliers; vertex 9: 20 scattered
+    # points only (what wrong correspondences to a hidden vertex look like).
+    good = np.array([1.0, 2.0, 3.0]) + rng.normal(0, 0.01, (40, 3))
+    bad = rng.uniform(-1, 1, (12, 3)) + [1.0, 2.0, 3.0]
+    scattered = rng.uniform(-0.5, 0.5, (20, 3))
+    pts = np.concatenate([good, bad, scattered])
+    ids = np.array([7] * 52 + [9] * 20)
+    order = rng.permutation(len(ids))
+    t, u, w = aggregate_by_vertex(pts[order], ids[order])
+    assert u.tolist() == [7, 9]
+    assert np.linalg.norm(t[0] - [1, 2, 3]) < 0.02  # the median ignores the outliers
+    assert w[0] > 25 and w[1] < 0.5  # a coherent cell keeps its weight, a scattered one not

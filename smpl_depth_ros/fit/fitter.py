@@ -2,13 +2,19 @@
 
 Two solvers minimise the same objective (fit.objective):
 
-* 'fast' (default): data-driven rigid initialisation (weighted Kabsch on the torso
-  correspondences, Geman-McClure reweighted), then Levenberg-Marquardt / IRLS iterations
-  with an analytic Jacobian of linear blend skinning for rotation increments
-  (R_j <- exp(delta_j) R_j) and translation, and a forward-mode Jacobian for shape. Only
-  the vertices that have correspondences are skinned (a random subset of at most
-  `max_points`). Tracking mode warm-starts from the previous frame, keeps its shape and
-  runs a few pose iterations.
+* 'fast' (default), in float64 numpy on the CPU (a few hundred targets and a few dozen
+  bones: numpy's per-call overhead is a fraction of torch's at that size):
+  1. targets: the points are aggregated per corresponded vertex (`aggregate_by_vertex`:
+     robust median, weight = count x coherence), at most `max_points` of them;
+  2. cold start: GM-reweighted Kabsch of the head+torso targets for the global rotation
+     and translation, then a per-segment closed-form rotation for every fitted joint,
+     parents first (in the spirit of smplfitter);
+  3. Levenberg-Marquardt / IRLS iterations with the analytic Jacobian of linear blend
+     skinning for rotation increments (R_j <- exp(delta_j) R_j), translation and the
+     exact local linearisation of the shape, with a graduated Geman-McClure scale; a
+     180-degree flip restart when the cold fit leaves a large residual.
+  Tracking mode warm-starts from the previous frame, keeps its shape and runs a few
+  iterations.
 * 'lbfgs': the paper's reference - PyTorch L-BFGS, strong Wolfe, lr 0.6, 20 iterations on
   axis-angle parameters, from the same initialisation.
 
@@ -21,14 +27,15 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
-from smpl_depth_ros.body import lbs
 from smpl_depth_ros.body.base import BodyModel
 from smpl_depth_ros.config import FitConfig
 from smpl_depth_ros.fit import objective
 from smpl_depth_ros.types import BodyParams
 
 TORSO_PARTS = (1, 2)  # head + torso: the most rigid region, used for the rigid init
+MAX_RAW_POINTS = 20000  # input points aggregated per fit (a random subset beyond that)
 
 
 def backproject(depth: np.ndarray, K: np.ndarray, mask: np.ndarray | None = None):
@@ -84,24 +91,172 @@ class FitResult:
         return float(np.median(self.residuals)) if len(self.residuals) else float('inf')
 
 
-def _kabsch(src: torch.Tensor, dst: torch.Tensor, w: torch.Tensor):
+def _kabsch(src: np.ndarray, dst: np.ndarray, w: np.ndarray):
     """Weighted rigid transform (R, t) minimising sum w |R src + t - dst|^2."""
     w = w / w.sum()
-    cs, cd = (w[:, None] * src).sum(0), (w[:, None] * dst).sum(0)
+    cs, cd = w @ src, w @ dst
     H = ((src - cs) * w[:, None]).T @ (dst - cd)
-    U, _, Vt = torch.linalg.svd(H.double())
-    d = torch.sign(torch.det(Vt.T @ U.T))
-    D = torch.diag(torch.tensor([1.0, 1.0, float(d)], dtype=torch.float64, device=src.device))
-    R = (Vt.T @ D @ U.T).to(src.dtype)
+    U, _, Vt = np.linalg.svd(H)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
     return R, cd - R @ cs
 
 
-def _skew_cross_cols(G: torch.Tensor, U: torch.Tensor) -> torch.Tensor:
-    """Columns (G e_a) x u for a = 0..2: G (J,3,3), U (J,N,3) -> (N, 3, J*3)."""
-    cols = torch.linalg.cross(G.transpose(-1, -2)[:, None, :, :].expand(-1, U.shape[1], -1, -1),
-                              U[:, :, None, :].expand(-1, -1, 3, -1), dim=-1)  # (J,N,a,c)
-    J, N = U.shape[:2]
-    return cols.permute(1, 3, 0, 2).reshape(N, 3, J * 3)
+def _group_median(values: np.ndarray, grp: np.ndarray, lo: np.ndarray, hi: np.ndarray):
+    """Median of `values` within contiguous groups `grp` (sorted), group bounds lo/hi."""
+    span = max(float(values.max() - values.min()), 1e-9)
+    # Sort by (group, value) with one argsort: the values map into [0, 1).
+    xs = values[np.argsort(grp + (values - values.min()) / (span * (1 + 1e-6)), kind='stable')]
+    return 0.5 * (xs[lo] + xs[hi])
+
+
+def aggregate_by_vertex(points: np.ndarray, ids: np.ndarray, weights: np.ndarray | None = None,
+                        spread_m: float = 0.02):
+    """One robust target per corresponded vertex.
+
+    Many pixels share a vertex (a 1,229-vertex template spans ~3 cm between vertices):
+    the median of its cell of points sits near the vertex itself, whereas single pixels
+    scatter by the vertex spacing plus sensor noise. The target is the coordinate-wise
+    median of the vertex's points; its weight is their number (or summed weights) times
+    1 / (1 + (d / spread_m)^2), d = the median distance of the points to the target: a
+    coherent cell keeps its weight, a cell made of scattered wrong correspondences
+    (e.g. a hidden vertex that only wrong pixels name) nearly vanishes.
+
+    Returns:
+        targets (M, 3), vertex ids (M,), weights (M,).
+    """
+    ids = np.asarray(ids, np.int64)
+    order = np.argsort(ids, kind='stable')
+    uniq, start, counts = np.unique(ids[order], return_index=True, return_counts=True)
+    lo, hi = start + (counts - 1) // 2, start + counts // 2
+    grp = np.repeat(np.arange(len(uniq)), counts)
+    p = np.asarray(points, np.float64)[order]
+    out = np.stack([_group_median(p[:, c], grp, lo, hi) for c in range(3)], 1)
+    spread = _group_median(np.linalg.norm(p - out[grp], axis=1), grp, lo, hi)
+    w = counts.astype(np.float64) if weights is None else \
+        np.bincount(grp, np.asarray(weights, np.float64)[order], len(uniq))
+    return out, uniq, w / (1.0 + (spread / spread_m) ** 2)
+
+
+def _rodrigues(v: np.ndarray) -> np.ndarray:
+    """(..., 3) axis-angle -> (..., 3, 3)."""
+    return Rotation.from_rotvec(v.reshape(-1, 3)).as_matrix().reshape(v.shape[:-1] + (3, 3))
+
+
+def _log(R: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotations -> (..., 3) axis-angle."""
+    return Rotation.from_matrix(R.reshape(-1, 3, 3)).as_rotvec().reshape(R.shape[:-2] + (3,))
+
+
+# Levi-Civita: (a x b)_c = eps[c, b_, d] a_b b_d.
+_EPS = np.zeros((3, 3, 3))
+for _c, _b, _d in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
+    _EPS[_c, _b, _d], _EPS[_c, _d, _b] = 1.0, -1.0
+
+
+class _Rig:
+    """The body model's kinematic structure as float64 numpy arrays (fast solver).
+
+    The fast solver works on a few hundred points and a few dozen bones: numpy on the CPU
+    has a fraction of torch's per-call overhead at that size, so the solver runs in numpy
+    whatever device the network uses.
+    """
+
+    def __init__(self, body: BodyModel):
+        f = lambda t: t.detach().cpu().double().numpy()  # noqa: E731
+        self.parents = body.bone_parents.cpu().numpy()
+        self.levels = [lv.cpu().numpy() for lv in body._levels]
+        self.jb = body.joint_bones.cpu().numpy()
+        nb = len(self.parents)
+        # Parent bone of each fitted joint's bone; -1 for the root (its parent frame is I).
+        self.jparent = np.array([self.parents[b] if b != 0 else -1 for b in self.jb])
+        # Descendant-or-self mask: fitted joint -> bones its rotation moves.
+        desc = np.zeros((len(self.jb), nb))
+        for j, b in enumerate(self.jb):
+            for k in range(nb):
+                a = k
+                while True:
+                    if a == b:
+                        desc[j, k] = 1
+                        break
+                    if a == 0:
+                        break
+                    a = self.parents[a]
+        self.desc = desc
+        w = f(body.skin_weights)
+        if body.skin_indices is None:
+            self.weights = w
+        else:  # sparse (V, K) -> dense (V, bones)
+            self.weights = np.zeros((len(w), nb))
+            np.add.at(self.weights, (np.arange(len(w))[:, None],
+                                     body.skin_indices.cpu().numpy()), w)
+        # Joint targets (baseline): a bone head moves rigidly with its parent bone.
+        self.joint_weights = np.eye(nb)[[self.parents[b] if b != 0 else 0 for b in self.jb]]
+        self.C = f(body.canonical_rotation)
+        self.limits = f(body.limits_canonical())
+        self.shape_mean, self.shape_std = f(body.shape_mean), f(body.shape_std)
+        self.bounds = body.shape_bounds
+        self.part_labels = body.part_labels.cpu().numpy()
+        # Segment of every bone: the nearest fitted joint at or above it (unfitted bones
+        # stay at rest, so a segment moves rigidly with its joint); fitted joints in
+        # kinematic order (parents first) for the per-segment initialisation.
+        owner = {int(b): j for j, b in enumerate(self.jb)}
+        seg = np.zeros(nb, np.int64)
+        depth = np.zeros(nb, np.int64)
+        for lv_depth, lv in enumerate(self.levels):
+            depth[lv] = lv_depth
+        for b in range(nb):
+            a = b
+            while a not in owner and a != 0:
+                a = self.parents[a]
+            seg[b] = owner.get(a, 0)
+        self.segment_of_vertex = seg[self.weights.argmax(1)]
+        self.joint_order = [int(j) for j in np.argsort(depth[self.jb], kind='stable') if j]
+
+    def fk(self, rot: np.ndarray, heads: np.ndarray):
+        """Fitted-joint rotations (J, 3, 3) and rest heads (Jb, 3) -> world rotations
+        G (Jb, 3, 3) and posed heads x (Jb, 3) (lbs.forward_kinematics in numpy)."""
+        G = np.empty((len(self.parents), 3, 3))
+        G[:] = np.eye(3)
+        G[self.jb] = rot
+        x = np.empty_like(heads)
+        r0 = self.levels[0]
+        x[r0] = heads[r0]
+        for lv in self.levels[1:]:
+            p = self.parents[lv]
+            x[lv] = x[p] + np.einsum('nij,nj->ni', G[p], heads[lv] - heads[p])
+            G[lv] = G[p] @ G[lv]
+        return G, x
+
+    def fk_tangent(self, G: np.ndarray, dheads: np.ndarray) -> np.ndarray:
+        """d(posed heads)/d(rest heads) for (Jb, 3, S) tangents (rotations fixed)."""
+        dx = np.empty_like(dheads)
+        dx[self.levels[0]] = dheads[self.levels[0]]
+        for lv in self.levels[1:]:
+            p = self.parents[lv]
+            dx[lv] = dx[p] + G[p] @ (dheads[lv] - dheads[p])
+        return dx
+
+    @staticmethod
+    def skin(W, G, x, heads, rest_pts):
+        """Posed points v_n = sum_b WQ_nb, with the weighted per-bone terms
+        WQ_nb = W_nb (G_b r_n + x_b - G_b h_b) (N, Jb, 3) that the Jacobian reuses."""
+        tb = x - np.einsum('bij,bj->bi', G, heads)
+        WQ = (rest_pts @ G.reshape(-1, 3).T).reshape(len(rest_pts), -1, 3)
+        WQ += tb
+        WQ *= W[:, :, None]
+        return WQ.sum(1), WQ
+
+
+def _single_threaded_blas() -> None:
+    """The fast solver makes many small BLAS calls between torch calls; OpenBLAS's worker
+    threads then fight torch's OpenMP threads for the cores and every call waits
+    (measured: 15x slower on 2 cores). One BLAS thread is the fastest at these sizes."""
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # optional: only speed depends on it
+        return
+    threadpool_limits(1, user_api='blas')
 
 
 class Fitter:
@@ -115,104 +270,102 @@ class Fitter:
     def __init__(self, body: BodyModel, cfg: FitConfig = FitConfig()):
         self.body = body
         self.cfg = cfg
-        kw = dict(device=body.device, dtype=body.dtype)
-        self._limits = body.limits_canonical()
-        self._C = body.canonical_rotation.to(**kw)
-        # Descendant-or-self mask: fitted joint -> bones moved by its rotation.
-        parents = body.bone_parents.tolist()
-        nb = len(parents)
-        jb = body.joint_bones.tolist()
-        D = torch.zeros(len(jb), nb, **kw)
-        for j, b in enumerate(jb):
-            for k in range(nb):
-                a = k
-                while True:
-                    if a == b:
-                        D[j, k] = 1
-                        break
-                    if a == 0:
-                        break
-                    a = parents[a]
-        self._desc = D
-        # Parent bone of each fitted joint's bone (root: itself) for the joint baseline.
-        self._joint_parent_bone = torch.tensor([parents[b] if b != 0 else 0 for b in jb],
-                                               device=body.device)
-        self._gen = torch.Generator().manual_seed(0)
+        self.rig = _Rig(body)
+        _single_threaded_blas()
+        self._rest_cache: dict[bytes, tuple] = {}
+        self._rng = np.random.default_rng(0)
 
     # ------------------------------------------------------------------ helpers
-    def _to_tensor(self, a, dtype=None):
-        return torch.as_tensor(np.asarray(a), device=self.body.device,
-                               dtype=dtype or self.body.dtype)
+    def _rest(self, shape: np.ndarray):
+        """Exact first-order rest geometry of the whole mesh at `shape` (cached):
+        rest vertices (V, 3), their shape Jacobian (V, 3, S), rest heads (Jb, 3) and their
+        Jacobian (Jb, 3, S)."""
+        key = np.asarray(shape, np.float64).tobytes()
+        hit = self._rest_cache.get(key)
+        if hit is None:
+            body = self.body
+            s = torch.as_tensor(shape, dtype=body.dtype, device=body.device)[None]
+            with torch.no_grad():
+                hit = tuple(t.detach().cpu().double().numpy()
+                            for t in body.rest_linear(s, None))
+            hit = (np.asarray(shape, np.float64).copy(),) + hit
+            if len(self._rest_cache) >= 16:
+                self._rest_cache.pop(next(iter(self._rest_cache)))
+            self._rest_cache[key] = hit
+        return hit
 
-    def _params_from(self, init: BodyParams | None) -> dict[str, torch.Tensor]:
-        p = self.body.zero_params(1)
-        if init is not None:
-            p['pose'] = self._to_tensor(init.pose)[None].clone()
-            p['shape'] = self._to_tensor(init.shape)[None].clone()
-            p['global_orient'] = self._to_tensor(init.global_orient)[None].clone()
-            p['transl'] = self._to_tensor(init.transl)[None].clone()
-        return p
-
-    def _rest_linear(self, shape, ids, joints: bool):
-        """Linearised rest geometry of the fitted points around `shape`.
-
-        Returns (rest0 (N,3), A (N,3,S), heads0 (Jb,3), B (Jb,3,S), w (N,K), idx (N,K)).
-        Joint targets are bone heads rigidly attached to their parent bone.
-        """
+    def _pose_offsets(self, rot: np.ndarray, ids: np.ndarray | None):
+        """SMPL's pose-corrective offsets (0 for anny). Their derivative is left out of
+        the Jacobian (a small, standard Gauss-Newton approximation)."""
         body = self.body
+        if not hasattr(body, 'pose_offsets'):
+            return 0.0
+        r = torch.as_tensor(rot, dtype=body.dtype, device=body.device)[None]
+        i = None if ids is None else torch.as_tensor(ids, device=body.device)
+        with torch.no_grad():
+            return body.pose_offsets(r, i)[0].cpu().double().numpy()
+
+    def _problem(self, shape, ids, joints: bool):
+        """Rest points, their shape Jacobian and skinning weights of the targets."""
+        s0, r0, A, h0, B = self._rest(shape)
+        rig = self.rig
         if joints:
-            _, _, h0, B = body.rest_linear(shape, vertex_ids=ids[:1])
-            jb = body.joint_bones[ids]
-            w = torch.ones(len(ids), 1, dtype=body.dtype, device=body.device)
-            return h0[jb], B[jb], h0, B, w, self._joint_parent_bone[ids][:, None]
-        uniq, inv = torch.unique(ids, return_inverse=True)
-        r0, A, h0, B = body.rest_linear(shape, vertex_ids=uniq)
-        r0, A = r0[inv], A[inv]
-        w, idx = body.skin_weights[ids], body.skin_indices
-        idx = (torch.arange(w.shape[1], device=w.device).expand(len(ids), -1)
-               if idx is None else idx[ids])
-        return r0, A, h0, B, w, idx
+            b = rig.jb[ids]
+            return s0, h0[b], B[b], h0, B, rig.joint_weights[ids]
+        return s0, r0[ids], A[ids], h0, B, rig.weights[ids]
 
-    def _pose_points(self, rot, rest_pts, w, idx, heads, ids=None):
-        """Per-influence and blended posed points (no global translation).
-
-        With `ids` (vertex targets) the backend's pose-corrective offsets (SMPL's pose
-        blendshapes) are added to the rest points; their derivative is left out of the
-        Jacobian (a small, standard Gauss-Newton approximation).
-        """
-        body = self.body
-        if ids is not None and hasattr(body, 'pose_offsets'):
-            rest_pts = rest_pts + body.pose_offsets(rot[None], ids)[0]
-        G, x = body.skeleton_pose(rot[None], heads[None])
-        G, x = G[0], x[0]
-        vk = (G[idx] @ (rest_pts[:, None, :] - heads[idx])[..., None])[..., 0] + x[idx]
-        v = (w[..., None] * vk).sum(1)
-        return v, vk, G, x
-
-    def _initial_rigid(self, points, ids, part_of_point, joints: bool, shape):
-        """Weighted Kabsch (GM-reweighted) from the rest model to the points."""
-        body = self.body
-        zero = torch.zeros(1, body.num_pose_joints, 3, dtype=body.dtype, device=body.device)
-        out = body(zero, shape, vertex_ids=None if joints else ids)
-        src = out.joints[0, ids] if joints else out.vertices[0]
-        sel = torch.ones(len(points), dtype=torch.bool, device=points.device)
-        if part_of_point is not None:
-            torso = torch.zeros_like(sel)
-            for p in TORSO_PARTS:
-                torso |= part_of_point == p
-            if int(torso.sum()) >= 30:
+    def _initial_rigid(self, pts, ids, wts, joints: bool, shape):
+        """Weighted Kabsch (GM-reweighted) from the rest model to the points: rotation
+        about the root's rest position and translation, from the head+torso points."""
+        rig = self.rig
+        _, rp, _, h0, _, _ = self._problem(shape, ids, joints)
+        sel = np.ones(len(pts), bool)
+        if not joints:
+            torso = np.isin(rig.part_labels[ids], TORSO_PARTS)
+            if torso.sum() >= 30:
                 sel = torso
-        s, d = src[sel], points[sel]
-        w = torch.ones(len(s), dtype=s.dtype, device=s.device)
+        s, d = rp[sel], pts[sel]
+        w0 = np.ones(len(s)) if wts is None else wts[sel]
+        w = w0
         for sig in (0.3, 0.2, 0.12, 0.08, 0.05, 0.05):
             # Reweighted Kabsch with a shrinking Geman-McClure scale: robust to wrong
             # correspondences, and to the non-rigid (posed) part of the torso region.
             R, t = _kabsch(s, d, w)
             r2 = ((s @ R.T + t - d) ** 2).sum(-1)
-            w = objective.gm_weights(r2, sig)
-        root = out.joints[0, 0]
-        transl = t + R @ root - root
-        return lbs.matrix_to_axis_angle(R), transl
+            w = w0 * objective.gm_weights(r2, sig)
+        root = h0[rig.jb[0]]
+        return R, t + R @ root - root
+
+    def _initial_segments(self, state, pts, ids, wts):
+        """Per-segment closed-form initialisation (in the spirit of smplfitter): parents
+        first, each fitted joint's world rotation is the GM-reweighted rotation-only
+        Kabsch of its segment's rest points about the joint onto the observed points
+        (the joint position follows from the parents). Segments with too few points
+        keep their rest rotation; the solver refines everything afterwards."""
+        rig = self.rig
+        rot, transl, shape = state
+        _, rp, _, h0, _, _ = self._problem(shape, ids, False)
+        seg = rig.segment_of_vertex[ids]
+        rot = rot.copy()
+        for j in rig.joint_order:
+            m = seg == j
+            if m.sum() < 20:
+                continue
+            G, x = rig.fk(rot, h0)
+            b = rig.jb[j]
+            src, dst = rp[m] - h0[b], pts[m] - transl - x[b]
+            if np.linalg.norm(src - src.mean(0), axis=1).mean() < 0.03:
+                continue  # too small to orient
+            w0 = np.ones(len(src)) if wts is None else wts[m]
+            w = w0
+            for sig in (0.15, 0.08, 0.05):
+                Hm = (src * w[:, None]).T @ dst
+                U, _, Vt = np.linalg.svd(Hm)
+                R = Vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))]) @ U.T
+                w = w0 * objective.gm_weights(((src @ R.T - dst) ** 2).sum(-1), sig)
+            Gp = G[rig.jparent[j]]
+            rot[j] = Gp.T @ R
+        return rot, transl, shape
 
     # ------------------------------------------------------------------ API
     def fit(self, points, vertex_ids, init: BodyParams | None = None, *,
@@ -236,60 +389,108 @@ class Fitter:
         t0 = time.perf_counter()
         cfg, body = self.cfg, self.body
         solver = solver or cfg.solver
-        pts_all = self._to_tensor(points)
-        ids_all = torch.as_tensor(np.asarray(vertex_ids), device=body.device).long()
+        pts_all = np.asarray(points.cpu() if torch.is_tensor(points) else points, np.float64)
+        ids_all = np.asarray(vertex_ids.cpu() if torch.is_tensor(vertex_ids) else vertex_ids,
+                             np.int64)
         if pts_all.ndim != 2 or pts_all.shape[1] != 3 or ids_all.shape != pts_all.shape[:1]:
             raise ValueError('points must be (N, 3) and vertex_ids (N,)')
         if len(ids_all) < 10:
             raise ValueError(f'too few correspondences to fit ({len(ids_all)})')
-        wts_all = None if weights is None else self._to_tensor(weights)
-        sel = torch.arange(len(ids_all), device=body.device)
-        if len(sel) > cfg.max_points and not targets_are_joints:
-            sel = torch.randperm(len(sel), generator=self._gen)[:cfg.max_points].to(body.device)
-        pts, ids = pts_all[sel], ids_all[sel]
-        wts = None if wts_all is None else wts_all[sel]
+        wts_all = None if weights is None else np.asarray(weights, np.float64)
+        if targets_are_joints:
+            pts, ids, wts = pts_all, ids_all, wts_all
+        else:
+            sel = slice(None)
+            if len(ids_all) > MAX_RAW_POINTS:  # a few dozen pixels per vertex are plenty
+                sel = self._rng.choice(len(ids_all), MAX_RAW_POINTS, replace=False)
+            pts, ids, wts = aggregate_by_vertex(pts_all[sel], ids_all[sel],
+                                                None if wts_all is None else wts_all[sel])
+            if len(ids) > cfg.max_points:
+                sel = self._rng.permutation(len(ids))[:cfg.max_points]
+                pts, ids, wts = pts[sel], ids[sel], wts[sel]
         warm = init is not None
         fix_shape = warm if fix_shape is None else fix_shape
-        params = self._params_from(init)
-        if not warm:
-            part = None if targets_are_joints else body.part_labels[ids]
-            go, tr = self._initial_rigid(pts, ids, part, targets_are_joints, params['shape'])
-            params['global_orient'], params['transl'] = go[None], tr[None]
+        if warm:
+            rot = _rodrigues(np.concatenate([np.asarray(init.global_orient, np.float64)[None],
+                                             np.asarray(init.pose, np.float64)]))
+            transl = np.asarray(init.transl, np.float64).copy()
+            shape = np.asarray(init.shape, np.float64).copy()
+        else:
+            shape = self.rig.shape_mean.copy()
+            rot = np.repeat(np.eye(3)[None], body.num_pose_joints + 1, 0)
+            rot[0], transl = self._initial_rigid(pts, ids, wts, targets_are_joints, shape)
+            if self.cfg.segment_init and not targets_are_joints:
+                rot, transl, shape = self._initial_segments((rot, transl, shape), pts, ids,
+                                                            wts)
+        state = (rot, transl, shape)
         if solver == 'lbfgs':
-            params, iters = self._lbfgs(params, pts, ids, wts, targets_are_joints,
-                                        iterations or cfg.lbfgs_iterations, fix_shape)
+            state, iters = self._lbfgs(state, pts, ids, wts, targets_are_joints,
+                                       iterations or cfg.lbfgs_iterations, fix_shape)
         elif solver == 'fast':
             n = iterations or (cfg.tracking_iterations if warm else cfg.iterations)
-            start = {k: v.clone() for k, v in params.items()}
             s0 = None if warm else cfg.gm_sigma_start
-            params, iters = self._gauss_newton(params, pts, ids, wts, targets_are_joints, n,
-                                               fix_shape, s0)
+            start = state
+            state, en, iters = self._levenberg_marquardt(state, pts, ids, wts,
+                                                         targets_are_joints, n, fix_shape, s0)
             if not warm and cfg.flip_restart and not targets_are_joints:
                 # Depth-only correspondences can confuse front and back: when the fit
                 # leaves a large residual, also try the init turned 180 deg about the
                 # body's vertical axis and keep the lower energy.
-                med = float(self._median_residual(params, pts, ids))
-                if med > cfg.flip_residual_m:
-                    alt = self._flipped(start, pts)
-                    alt, it2 = self._gauss_newton(alt, pts, ids, wts, False, n, fix_shape, s0)
-                    if self._energy(alt, pts, ids, wts, False) < \
-                            self._energy(params, pts, ids, wts, False):
-                        params = alt
+                sq = self._evaluate(state, pts, ids, False)[0]
+                if np.sqrt(np.median(sq)) > cfg.flip_residual_m:
+                    alt, en2, it2 = self._levenberg_marquardt(
+                        self._flipped(start, pts), pts, ids, wts, False, n, fix_shape, s0)
+                    if en2 < en:
+                        state = alt
                     iters += it2
         else:
             raise ValueError(f"unknown solver {solver!r} (expected 'fast' or 'lbfgs')")
-        return self._result(params, pts_all, ids_all, wts_all, targets_are_joints, iters,
-                            t0, solver, warm)
+        return self._result(state, (pts, ids, wts), pts_all, ids_all, targets_are_joints,
+                            iters, t0, solver, warm)
 
     def fit_joints(self, joints, init: BodyParams | None = None, **kw) -> FitResult:
         """Baseline (paper Table II row 1): fit to 3D joint positions (J, 3), model order."""
         joints = np.asarray(joints)
         return self.fit(joints, np.arange(len(joints)), init, targets_are_joints=True, **kw)
 
-    # ------------------------------------------------------------------ solvers
-    def _gauss_newton(self, params, pts, ids, wts, joints: bool, iterations: int,
-                      fix_shape: bool, sigma_start: float | None = None):
-        cfg, body = self.cfg, self.body
+    # ------------------------------------------------------------------ fast solver
+    def _evaluate(self, state, pts, ids, joints: bool, prob=None):
+        """Squared residuals (N,) and everything the Jacobian needs at one state."""
+        rot, transl, shape = state
+        s0, rp, A, h0, B, W = prob or self._problem(shape, ids, joints)
+        ds = shape - s0
+        rest = rp + A @ ds
+        if not joints:
+            rest = rest + self._pose_offsets(rot, ids)
+        heads = h0 + B @ ds
+        G, x = self.rig.fk(rot, heads)
+        v, WQ = self.rig.skin(W, G, x, heads, rest)
+        e = v + transl - pts
+        return (e * e).sum(-1), e, G, x, WQ
+
+    def _energy_terms(self, state, sq, wts, sigma):
+        """Objective (Eq. 3-4) from squared residuals; also the pose-prior pieces."""
+        cfg, rig = self.cfg, self.rig
+        rot, _, shape = state
+        aa = _log(rot[1:])
+        viol = objective.limit_violation(aa @ rig.C.T, rig.limits)
+        rho = objective.geman_mcclure(sq, sigma)
+        data = rho.mean() if wts is None else (rho * wts).sum() / wts.sum()
+        en = (cfg.lambda_data * data + cfg.lambda_pose * (viol ** 2).sum()
+              + cfg.lambda_pose_l2 * (aa ** 2).sum()
+              + cfg.lambda_shape * (((shape - rig.shape_mean) / rig.shape_std) ** 2).sum())
+        return float(en), float(data), aa, viol
+
+    def _levenberg_marquardt(self, state, pts, ids, wts, joints: bool, iterations: int,
+                             fix_shape: bool, sigma_start: float | None = None):
+        """IRLS / Levenberg-Marquardt on the robust objective.
+
+        Rotations are updated multiplicatively (R_j <- exp(delta_j) R_j) with the analytic
+        LBS Jacobian; translation additively; shape through the exact local linearisation
+        of the rest geometry (re-linearised when it moves: anny's phenotype mapping is
+        piecewise linear). Returns (state, energy at the final scale, iterations).
+        """
+        cfg, rig = self.cfg, self.rig
         s_end = cfg.gm_sigma
         s_start = max(sigma_start or s_end, s_end)
 
@@ -298,188 +499,153 @@ class Fitter:
             # final scale, reached half-way through the iterations.
             f = min(1.0, (it - 1) / max(iterations / 2, 1))
             return s_start * (s_end / s_start) ** f
-        P, S = body.num_pose_joints, body.num_shape
-        rot = lbs.axis_angle_to_matrix(
-            torch.cat([params['global_orient'][:, None], params['pose']], 1))[0]  # (J,3,3)
-        transl = params['transl'][0].clone()
-        shape = params['shape'].clone()
+        P = len(rig.jb) - 1
+        S = len(rig.shape_mean)
         n_rot = 3 * (P + 1)
-        n = n_rot + 3 + (0 if fix_shape else S)
-        Cm = self._C
-        lim = self._limits
-        sq_lp, sq_l2, sq_ls = cfg.lambda_pose ** 0.5, cfg.lambda_pose_l2 ** 0.5, \
-            cfg.lambda_shape ** 0.5
-        mu = 1e-3
-        prev = None
-        prev_sigma = None
-        wsum = float(len(pts)) if wts is None else float(wts.sum())
-        r0, A, h0, B, w, idx = self._rest_linear(shape, ids, joints)
-        s0 = shape[0].clone()
-        vids = None if joints else ids
-
-        def rest_at(sh):
-            ds = sh[0] - s0
-            return r0 + A @ ds, h0 + B @ ds
-        rest_cache = rest_at(shape)
-
-        def evaluate_state(rot, transl, rest_cache):
-            """Posed points, residuals and pose-prior terms at one solver state."""
-            rp, heads = rest_cache
-            v, vk, G, x = self._pose_points(rot, rp, w, idx, heads, vids)
-            e = v + transl - pts
-            aa = lbs.matrix_to_axis_angle(rot[1:])
-            viol = objective.limit_violation(aa @ Cm.T, lim)
-            return v, vk, G, x, e, (e * e).sum(-1), aa, viol
-        it = 0
+        lam_p, lam_l2, lam_s = cfg.lambda_pose, cfg.lambda_pose_l2, cfg.lambda_shape
+        N = len(pts)
+        wsum = float(N) if wts is None else float(wts.sum())
+        prob = self._problem(state[2], ids, joints)
+        # Cold fits hold the shape for the first third (pose first: shape steps taken
+        # while the pose is far off are noise, and each shape move costs a
+        # re-linearisation).
+        hold = 0 if sigma_start is None else iterations // 3
+        mu, prev, prev_sigma, it = 1e-3, None, None, 0
         for it in range(1, iterations + 1):
-            if not fix_shape:
-                if float((shape[0] - s0).abs().max()) > 0.01:
-                    # anny's phenotype mapping is piecewise linear: re-linearise.
-                    r0, A, h0, B, w, idx = self._rest_linear(shape, ids, joints)
-                    s0 = shape[0].clone()
-                rest_cache = rest_at(shape)
-            st = evaluate_state(rot, transl, rest_cache)
-            v, vk, G, x, e, sq, aa, viol = st
+            free_shape = not fix_shape and it > hold
+            n = n_rot + 3 + (S if free_shape else 0)
+            if free_shape and np.abs(state[2] - prob[0]).max() > 0.01:
+                prob = self._problem(state[2], ids, joints)  # re-linearise the shape
+            sq, e, G, x, WQ = self._evaluate(state, pts, ids, joints, prob)
             sigma = sigma_at(it)
             if prev is not None and sigma != prev_sigma:
                 prev = None  # energies at different scales are not comparable
             prev_sigma = sigma
-            rho = objective.geman_mcclure(sq, sigma)
-            data = (rho.sum() if wts is None else (rho * wts).sum()) / wsum
-            en = (cfg.lambda_data * data + cfg.lambda_pose * (viol ** 2).sum()
-                  + cfg.lambda_pose_l2 * (aa ** 2).sum()
-                  + cfg.lambda_shape * (((shape[0] - body.shape_mean) / body.shape_std) ** 2).sum())
+            en, _, aa, viol = self._energy_terms(state, sq, wts, sigma)
             if prev is not None and en > prev[0]:
                 # Reject the step: restore the last accepted state and damp more (LM).
-                _, rot, transl, shape, rest_cache, st = prev
-                v, vk, G, x, e, sq, aa, viol = st
+                en, state, (sq, e, G, x, WQ), aa, viol = prev
                 mu *= 10
             else:
                 mu = max(mu / 3, 1e-6)
-                prev = (en, rot, transl, shape, rest_cache, st)
+                prev = (en, state, (sq, e, G, x, WQ), aa, viol)
+            rot, transl, shape = state
+            s0, _, A, _, B, W = prob
             # IRLS weights of the Geman-McClure term.
             om = objective.gm_weights(sq, sigma) * cfg.lambda_data / wsum
             if wts is not None:
                 om = om * wts
-            # Data Jacobian: rotations (analytic), translation (identity), shape (fwd-mode).
-            jb = body.joint_bones
-            Dm = self._desc[:, idx] * w[None]  # (J, N, K)
-            xj = x[jb]  # (J, 3)
-            U = torch.einsum('jnk,nkc->jnc', Dm, vk) - Dm.sum(-1)[..., None] * xj[:, None]
-            Gp = G[body.bone_parents[jb]].clone()
-            Gp[0] = torch.eye(3, dtype=G.dtype, device=G.device)
-            Jr = _skew_cross_cols(Gp, U)  # (N, 3, 3J)
-            cols = [Jr, torch.eye(3, dtype=e.dtype, device=e.device).expand(len(e), 3, 3)]
-            if not fix_shape:
-                # d v'/d s = sum_k w_k (G_k (A - B_k) + dx_k), dx from tangent FK.
-                dx = lbs.forward_kinematics_tangent(G, B, body.bone_parents, body._levels)
-                Js = (G[idx] @ (A[:, None] - B[idx])) + dx[idx]  # (N, K, 3, S)
-                cols.append((w[..., None, None] * Js).sum(1))
-            Jd = torch.cat(cols, -1)  # (N, 3, n)
-            Jw = Jd * om.sqrt()[:, None, None]
-            ew = e * om.sqrt()[:, None]
-            Jf = Jw.reshape(-1, n)
+            sw = np.sqrt(om)
+            # Rotation columns: d v / d delta_j = (Gp_j delta) x u_j,
+            # u_j = sum over bones moved by joint j of W (G_b r + t_b - x_j).
+            U = (rig.desc @ WQ.transpose(1, 0, 2).reshape(W.shape[1], -1)).reshape(
+                P + 1, N, 3) - (W @ rig.desc.T).T[:, :, None] * x[rig.jb][:, None, :]
+            Gp = np.where(rig.jparent[:, None, None] >= 0, G[rig.jparent], np.eye(3))
+            # cross(Gp_j e_a, u)_c = sum_d T[j, d, (c, a)] u_d.
+            T = np.einsum('cbd,jba->jdca', _EPS, Gp).reshape(P + 1, 3, 9)
+            Jr = (U @ T).reshape(P + 1, N, 3, 3).transpose(1, 2, 0, 3).reshape(N, 3, n_rot)
+            Jd = np.empty((N, 3, n))
+            Jd[:, :, :n_rot] = Jr
+            Jd[:, :, n_rot:n_rot + 3] = np.eye(3)
+            if free_shape:
+                # d v / d s = sum_b W (G_b (A - B_b) + dx_b), dx from tangent FK.
+                dx = rig.fk_tangent(G, B)
+                Cb = dx - G @ B  # (Jb, 3, S)
+                M = (W @ G.reshape(len(G), 9)).reshape(N, 3, 3)
+                Jd[:, :, n_rot + 3:] = M @ A + (W @ Cb.reshape(len(G), -1)).reshape(N, 3, S)
+            Jf = (Jd * sw[:, None, None]).reshape(-1, n)
             H = Jf.T @ Jf
-            g = Jf.T @ ew.reshape(-1)
+            g = Jf.T @ (e * sw[:, None]).reshape(-1)
             # Pose priors (Jacobian of the canonical axis-angle ~ C for the increment).
-            out = (viol != 0).to(e.dtype)  # (P, 3)
-            Jp = -(out[..., None] * Cm[None]) * sq_lp  # (P, 3, 3)
-            rp_res = viol * sq_lp
-            blk = slice(3, n_rot)
-            Hp = torch.zeros(P, 3, 3, dtype=e.dtype, device=e.device)
-            Hp += Jp.transpose(-1, -2) @ Jp + (sq_l2 ** 2) * torch.eye(3, dtype=e.dtype,
-                                                                       device=e.device)
-            gp = (Jp.transpose(-1, -2) @ rp_res[..., None])[..., 0] + (sq_l2 ** 2) * aa
-            H[blk, blk] += torch.block_diag(*Hp)
-            g[blk] += gp.reshape(-1)
-            if not fix_shape:
-                sblk = slice(n_rot + 3, n)
-                inv = 1.0 / body.shape_std
-                H[sblk, sblk] += torch.diag((sq_ls * inv) ** 2)
-                g[sblk] += (sq_ls * inv) ** 2 * (shape[0] - body.shape_mean)
-            Hd = H + mu * torch.diag(torch.diagonal(H)) + 1e-9 * torch.eye(n, dtype=H.dtype,
-                                                                        device=H.device)
-            step = -torch.linalg.solve(Hd.double(), g.double()).to(e.dtype)
-            dR = lbs.axis_angle_to_matrix(step[:n_rot].reshape(P + 1, 3))
-            rot = dR @ rot
+            out = (viol != 0).astype(np.float64)
+            Jp = out[..., None] * rig.C[None]  # (P, 3, 3), sign irrelevant in H
+            Hp = lam_p * Jp.transpose(0, 2, 1) @ Jp + lam_l2 * np.eye(3)
+            gp = lam_p * (-Jp.transpose(0, 2, 1) @ viol[..., None])[..., 0] + lam_l2 * aa
+            for j in range(P):
+                b = 3 + 3 * j
+                H[b:b + 3, b:b + 3] += Hp[j]
+            g[3:n_rot] += gp.reshape(-1)
+            if free_shape:
+                inv2 = lam_s / rig.shape_std ** 2
+                H[n_rot + 3:, n_rot + 3:] += np.diag(inv2)
+                g[n_rot + 3:] += inv2 * (shape - rig.shape_mean)
+            Hd = H + mu * np.diag(np.diag(H)) + 1e-9 * np.eye(n)
+            step = -np.linalg.solve(Hd, g)
+            rot = _rodrigues(step[:n_rot].reshape(P + 1, 3)) @ rot
             transl = transl + step[n_rot:n_rot + 3]
-            if not fix_shape:
-                shape = shape + step[n_rot + 3:][None]
-                if body.shape_bounds is not None:
-                    shape = shape.clamp(body.shape_bounds[0] + 1e-4, body.shape_bounds[1] - 1e-4)
-            if float(step.abs().max()) < 1e-5:
+            if free_shape:
+                shape = shape + step[n_rot + 3:]
+                if rig.bounds is not None:
+                    shape = shape.clip(rig.bounds[0] + 1e-4, rig.bounds[1] - 1e-4)
+            state = (rot, transl, shape)
+            if np.abs(step).max() < 1e-5:
                 break
         # Final state: the better of the last step and the best accepted one.
-        params = self._pack(rot, transl, shape)
-        if prev is not None:
-            en_last = self._energy(params, pts, ids, wts, joints)
-            if en_last > prev[0]:
-                params = self._pack(prev[1], prev[2], prev[3])
-        return params, it
+        sq = self._evaluate(state, pts, ids, joints)[0]
+        en = self._energy_terms(state, sq, wts, s_end)[0]
+        if prev is not None and prev_sigma == s_end and en > prev[0]:
+            en, state = prev[0], prev[1]
+        return state, en, it
 
-    def _median_residual(self, params, pts, ids):
-        with torch.no_grad():
-            uniq, inv = torch.unique(ids, return_inverse=True)
-            v = self.body(params['pose'], params['shape'], params['global_orient'],
-                          params['transl'], vertex_ids=uniq).vertices[0, inv]
-            return ((v - pts) ** 2).sum(-1).sqrt().median()
-
-    def _flipped(self, params, pts):
-        """params turned 180 deg about the body's up axis, through the points' centroid."""
-        body = self.body
-        R = lbs.axis_angle_to_matrix(params['global_orient'][0])
-        up = R @ self._C.T @ torch.tensor([0.0, 1.0, 0.0], dtype=R.dtype, device=R.device)
-        F = lbs.axis_angle_to_matrix(up * torch.pi)
-        with torch.no_grad():
-            zero = torch.zeros_like(params['pose'])
-            root = body(zero, params['shape']).joints[0, 0]
+    def _flipped(self, state, pts):
+        """The state turned 180 deg about the body's up axis, through the points' centroid."""
+        rot, transl, shape = state
+        rig = self.rig
+        up = rot[0] @ rig.C.T @ np.array([0.0, 1.0, 0.0])
+        F = _rodrigues(up * np.pi)
+        root = self._rest(shape)[3][rig.jb[0]]
         c = pts.mean(0)
-        out = {k: v.clone() for k, v in params.items()}
-        out['global_orient'] = lbs.matrix_to_axis_angle(F @ R)[None]
+        rot = rot.copy()
+        rot[0] = F @ rot[0]
         # New root position: rotate the current root position about the centroid.
-        p_root = root + params['transl'][0]
-        out['transl'] = (F @ (p_root - c) + c - root)[None]
-        return out
+        return rot, F @ (root + transl - c) + c - root, shape
 
-    def _pack(self, rot, transl, shape):
-        aa = lbs.matrix_to_axis_angle(rot)
-        return dict(pose=aa[None, 1:].contiguous(), global_orient=aa[None, 0].contiguous(),
-                    transl=transl[None].clone(), shape=shape.clone())
-
-    def _energy(self, params, pts, ids, wts, joints):
-        with torch.no_grad():
-            return float(objective.energy(self.body, params, pts, ids, self.cfg, wts,
-                                          joints)['total'])
-
-    def _lbfgs(self, params, pts, ids, wts, joints, iterations, fix_shape):
-        cfg = self.cfg
-        p = {k: v.detach().clone().requires_grad_(not (k == 'shape' and fix_shape))
-             for k, v in params.items()}
+    # ------------------------------------------------------------------ reference
+    def _lbfgs(self, state, pts, ids, wts, joints, iterations, fix_shape):
+        """The paper's solver: PyTorch L-BFGS (strong Wolfe) on axis-angle parameters."""
+        cfg, body = self.cfg, self.body
+        kw = dict(dtype=body.dtype, device=body.device)
+        rot, transl, shape = state
+        aa = _log(rot)
+        init = dict(pose=aa[None, 1:], global_orient=aa[None, 0], transl=transl[None],
+                    shape=shape[None])
+        p = {k: torch.tensor(v, **kw).requires_grad_(not (k == 'shape' and fix_shape))
+             for k, v in init.items()}
+        pts_t, ids_t = torch.as_tensor(pts, **kw), torch.as_tensor(ids, device=body.device)
+        wts_t = None if wts is None else torch.as_tensor(wts, **kw)
         opt = torch.optim.LBFGS([v for v in p.values() if v.requires_grad], lr=cfg.lbfgs_lr,
                                 max_iter=iterations, line_search_fn='strong_wolfe')
 
         def closure():
             opt.zero_grad()
-            en = objective.energy(self.body, p, pts, ids, cfg, wts, joints)['total']
+            en = objective.energy(body, p, pts_t, ids_t, cfg, wts_t, joints)['total']
             en.backward()
             return en
         opt.step(closure)
         n_iter = opt.state[opt._params[0]].get('n_iter', iterations)
-        return {k: v.detach() for k, v in p.items()}, int(n_iter)
+        f = {k: v.detach().cpu().double().numpy()[0] for k, v in p.items()}
+        rot = _rodrigues(np.concatenate([f['global_orient'][None], f['pose']]))
+        return (rot, f['transl'], f['shape']), int(n_iter)
 
-    def _result(self, params, pts, ids, wts, joints, iters, t0, solver, warm) -> FitResult:
-        body, cfg = self.body, self.cfg
-        with torch.no_grad():
-            out = body(params['pose'], params['shape'], params['global_orient'],
-                       params['transl'])
-            model = out.joints[0, ids] if joints else out.vertices[0, ids]
-            sq = ((model - pts) ** 2).sum(-1)
-            en = objective.energy(body, params, pts, ids, cfg, wts, joints)
-        f = lambda t: t.detach().cpu().numpy().astype(np.float32)  # noqa: E731
-        bp = BodyParams(pose=f(params['pose'][0]), shape=f(params['shape'][0]),
-                        global_orient=f(params['global_orient'][0]),
-                        transl=f(params['transl'][0]))
-        return FitResult(params=bp, vertices=f(out.vertices[0]), joints=f(out.joints[0]),
-                         residuals=f(sq.sqrt()), data_term=float(en['data']),
-                         energy=float(en['total']), iterations=iters,
-                         time_ms=(time.perf_counter() - t0) * 1e3, solver=solver, warm=warm)
+    # ------------------------------------------------------------------ result
+    def _result(self, state, targets, pts_all, ids_all, joints, iters, t0, solver,
+                warm) -> FitResult:
+        """FitResult: energy on the solver's targets, residuals of every input point."""
+        rig = self.rig
+        rot, transl, shape = state
+        pts, ids, wts = targets
+        sq = self._evaluate(state, pts, ids, joints)[0]
+        en, data, aa, _ = self._energy_terms(state, sq, wts, self.cfg.gm_sigma)
+        s0, r0, A, h0, B = self._rest(shape)  # exact at the final shape
+        G, x = rig.fk(rot, h0)
+        verts, _ = rig.skin(rig.weights, G, x, h0, r0 + self._pose_offsets(rot, None))
+        verts += transl
+        model = (x[rig.jb] + transl)[ids_all] if joints else verts[ids_all]
+        sq = ((model - pts_all) ** 2).sum(-1)
+        f32 = lambda a: np.asarray(a, np.float32)  # noqa: E731
+        bp = BodyParams(pose=f32(aa), shape=f32(shape), global_orient=f32(_log(rot[0])),
+                        transl=f32(transl))
+        return FitResult(params=bp, vertices=f32(verts), joints=f32(x[rig.jb] + transl),
+                         residuals=f32(np.sqrt(sq)), data_term=data, energy=en,
+                         iterations=iters, time_ms=(time.perf_counter() - t0) * 1e3,
+                         solver=solver, warm=warm)

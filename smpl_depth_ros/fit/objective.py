@@ -16,6 +16,10 @@ import torch
 from smpl_depth_ros.config import FitConfig
 
 
+# The penalty helpers take numpy arrays or torch tensors alike (the fast solver runs in
+# numpy, the L-BFGS reference and the tests in torch).
+
+
 def geman_mcclure(sq_dist: torch.Tensor, sigma: float) -> torch.Tensor:
     """rho(r^2) = sigma^2 r^2 / (r^2 + sigma^2): ~r^2 near 0, bounded by sigma^2."""
     s2 = sigma * sigma
@@ -31,7 +35,7 @@ def gm_weights(sq_dist: torch.Tensor, sigma: float) -> torch.Tensor:
 def limit_violation(pose_canonical: torch.Tensor, limits: torch.Tensor) -> torch.Tensor:
     """(..., P, 3) signed distance outside the box limits (P, 3, 2); 0 inside."""
     lo, hi = limits[..., 0], limits[..., 1]
-    return torch.relu(lo - pose_canonical) - torch.relu(pose_canonical - hi)
+    return (lo - pose_canonical).clip(min=0) - (pose_canonical - hi).clip(min=0)
 
 
 def energy(body, params: dict, points: torch.Tensor, vertex_ids: torch.Tensor,
