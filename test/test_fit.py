@@ -119,6 +119,6 @@ def test_aggregate_by_vertex_is_robust():
     ids = np.array([7] * 52 + [9] * 20)
     order = rng.permutation(len(ids))
     t, u, w = aggregate_by_vertex(pts[order], ids[order])
-    assert u.tolist() == [7, 9]
+    assert u.tolist() == [7]  # the scattered cell is dropped
     assert np.linalg.norm(t[0] - [1, 2, 3]) < 0.02  # the median ignores the outliers
-    assert w[0] > 25 and w[1] < 0.5  # a coherent cell keeps its weight, a scattered one not
+    assert w[0] > 25  # a coherent cell keeps its weight

@@ -118,9 +118,10 @@ def aggregate_by_vertex(points: np.ndarray, ids: np.ndarray, weights: np.ndarray
     the median of its cell of points sits near the vertex itself, whereas single pixels
     scatter by the vertex spacing plus sensor noise. The target is the coordinate-wise
     median of the vertex's points; its weight is their number (or summed weights) times
-    1 / (1 + (d / spread_m)^2), d = the median distance of the points to the target: a
-    coherent cell keeps its weight, a cell made of scattered wrong correspondences
-    (e.g. a hidden vertex that only wrong pixels name) nearly vanishes.
+    1 / (1 + (d / spread_m)^2), d = the median distance of the points to the target, and
+    0 beyond d > 3 spread_m: a coherent cell keeps its weight, a cell made of scattered
+    wrong correspondences (e.g. a hidden vertex that only wrong pixels name) is dropped -
+    a small weight would still drag a limb that nothing else constrains.
 
     Returns:
         targets (M, 3), vertex ids (M,), weights (M,).
@@ -135,7 +136,9 @@ def aggregate_by_vertex(points: np.ndarray, ids: np.ndarray, weights: np.ndarray
     spread = _group_median(np.linalg.norm(p - out[grp], axis=1), grp, lo, hi)
     w = counts.astype(np.float64) if weights is None else \
         np.bincount(grp, np.asarray(weights, np.float64)[order], len(uniq))
-    return out, uniq, w / (1.0 + (spread / spread_m) ** 2)
+    w = w / (1.0 + (spread / spread_m) ** 2)
+    keep = spread <= 3 * spread_m
+    return out[keep], uniq[keep], w[keep]
 
 
 def _rodrigues(v: np.ndarray) -> np.ndarray:
