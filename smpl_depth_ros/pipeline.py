@@ -111,19 +111,26 @@ class Reconstructor:
             self.reset()
             raise InputError('no_person', f'no person found between {cfg.depth_min:.2f} and '
                              f'{cfg.depth_max:.2f} m')
-        dcrops = [crop_depth(d, c) for c in crops]
-        x = np.stack([network_input(dc, c.median_depth) for dc, c in zip(dcrops, crops)])
-        lab, coords = self.net.predict(x)
-        t2 = time.perf_counter()
-        timings['network'] = (t2 - t1) * 1e3
         persons = []
+        x, lab, coords = [], [], []  # network inputs and outputs, per candidate so far
         for i, crop in enumerate(crops):
             if len(persons) >= cfg.max_persons:
                 break
-            fg = (lab[i] > 0) & (x[i, 1] > 0)
+            if i == len(x):
+                # The network runs on as many candidates as persons are still missing (one,
+                # in the common case); further ones only when these are rejected.
+                tn = time.perf_counter()
+                batch = crops[i:i + cfg.max_persons - len(persons)]
+                xb = np.stack([network_input(crop_depth(d, c), c.median_depth) for c in batch])
+                lb, cb = self.net.predict(xb)
+                x.extend(xb)
+                lab.extend(lb)
+                coords.extend(cb)
+                timings['network'] += (time.perf_counter() - tn) * 1e3
+            fg = (lab[i] > 0) & (x[i][1] > 0)
             # A candidate is a person when the network sees a body in most of it.
-            if fg.sum() < MIN_BODY_PIXELS or fg.sum() < 0.4 * max(int(x[i, 1].sum()), 1) \
-                    * self._blob_fraction(crop, x[i, 1]):
+            if fg.sum() < MIN_BODY_PIXELS or fg.sum() < 0.4 * max(int(x[i][1].sum()), 1) \
+                    * self._blob_fraction(crop, x[i][1]):
                 continue
             tc = time.perf_counter()
             vids = self.net.lookup(lab[i], coords[i], fg)

@@ -1,22 +1,31 @@
 """Input preparation for a real sensor frame (no ROS).
 
+Person detection (steps 1-3) runs on the depth image decimated by nearest neighbour to
+about DETECT_WIDTH pixels wide (every s-th pixel each way, s = round(W / DETECT_WIDTH);
+pixel counts such as min_pixels scale by 1 / s^2); boxes and masks are full-image pixels.
+
 1. Valid pixels in [depth_min, depth_max].
-2. The floor removed: RANSAC on a subsample for near-horizontal planes (normal within
-   ~40 deg of the image vertical) holding > 3 % of the valid points and spanning > 1 m
-   in both in-plane directions (up to two, e.g. floor and a table top).
+2. The floor removed: RANSAC (hypotheses scored preemptively on random subsamples) for
+   near-horizontal planes (normal within ~40 deg of the image vertical) holding > 3 % of
+   the valid points and spanning > 1 m in both in-plane directions (up to two, e.g. floor
+   and a table top).
 3. Connected components of what remains, with edges cut at depth jumps > 6 cm between
-   neighbouring pixels; a blob is a person candidate when it has enough pixels and a
-   plausible 3D size (0.4-2.6 m tall, < 1.6 m wide).
-4. Candidates sorted most central first (distance of the blob centroid to the image
+   neighbouring pixels; smaller components at a similar depth near a component's box are
+   merged into it (self-occlusion); a blob is a person candidate when it has enough
+   pixels and a plausible 3D size (0.4-2.6 m tall, < 1.6 m wide).
+4. A candidate's mask: its blob's s x s pixel blocks, grown by ~GROW_PX pixels, where the
+   depth is valid and within GROW_DEPTH of the blob's median depth.
+5. Candidates sorted most central first (distance of the blob centroid to the image
    centre); each gets a square crop (1.15 x the larger bbox side) resampled
    (nearest neighbour) to INPUT_SIZE x INPUT_SIZE.
-5. Network input: channel 0 = (depth - person median) / 0.5 m for valid pixels within
+6. Network input: channel 0 = (depth - person median) / 0.5 m for valid pixels within
    +-1 m of the median (0 elsewhere), channel 1 = that validity mask.
 
 `Crop` keeps the mapping back to full-image pixels.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,6 +35,9 @@ from smpl_depth_ros.net.unet import INPUT_SIZE
 
 NORM_SCALE = 0.5   # metres per unit of normalised depth
 NEAR_RANGE = 1.0   # pixels further than this from the person's median depth are dropped
+DETECT_WIDTH = 320  # person detection runs on the image decimated to about this width
+GROW_PX = 3         # a person mask reaches this many pixels past its blob ...
+GROW_DEPTH = 0.8    # ... at most this far from the person's median depth (metres)
 
 
 @dataclass
@@ -37,7 +49,8 @@ class Crop:
         scale: full-image pixels per crop pixel.
         size: crop side in crop pixels (INPUT_SIZE).
         median_depth: the person's median depth (metres).
-        mask: (H, W) bool person blob in the full image (None for training crops).
+        mask: (H, W) bool person mask in the full image (the grown blob, see the module
+            doc; None for training crops).
         exclude: (H, W) bool pixels of other person candidates at least half this one's
             size: hidden from the network and the fit (neighbours at a similar depth),
             while this person's own self-occluding parts (separate blobs, smaller) stay.
@@ -105,10 +118,20 @@ def crop_depth(depth: np.ndarray, crop: Crop, only_blob: bool = True) -> np.ndar
     return np.nan_to_num(out, nan=0.0).astype(np.float32)
 
 
+def _pixel_points(rows, cols, z, K) -> np.ndarray:
+    """Full-image pixels (row, col) with depth z -> (N, 3) float64 camera-frame points."""
+    z = z.astype(np.float64)
+    return np.stack([(cols - K[0, 2]) * z / K[0, 0], (rows - K[1, 2]) * z / K[1, 1], z], 1)
+
+
 def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=2,
-                   min_fraction=0.03, thresh=0.03, iters=300, min_extent=1.0,
-                   min_up=0.75) -> np.ndarray:
-    """Boolean mask of points that belong to none of the dominant planes."""
+                   min_fraction=0.03, thresh=0.03, iters=1000, min_extent=1.0,
+                   min_up=0.75, sample=2000, presample=200, finalists=10) -> np.ndarray:
+    """Boolean mask of points that belong to none of the dominant planes.
+
+    RANSAC over `iters` point triples per plane; hypotheses are scored preemptively: all on
+    `presample` random points, the best `finalists` on `sample` random points.
+    """
     keep = np.ones(len(points), bool)
     n_all = len(points)
     if n_all < 100:
@@ -117,8 +140,7 @@ def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=2,
         idx = np.flatnonzero(keep)
         if len(idx) < 100:
             break
-        sub = idx[rng.choice(len(idx), min(len(idx), 4000), replace=False)]
-        P = points[sub]
+        P = points[idx[rng.choice(len(idx), min(len(idx), sample), replace=False)]]
         tri = rng.integers(0, len(P), (iters, 3))
         a, b, c = P[tri[:, 0]], P[tri[:, 1]], P[tri[:, 2]]
         n = np.cross(b - a, c - a)
@@ -133,12 +155,11 @@ def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=2,
         up = np.abs(n[:, 1]) > min_up
         if not up.any():
             break
-        n, a = n[up], a[up]
-        d = np.abs(np.einsum('hnk,hk->hn', P[None] - a[:, None], n))
-        counts = (d < thresh).sum(1)
-        best = int(np.argmax(counts))
-        dist = np.abs((points[idx] - a[best]) @ n[best])
-        inl = dist < thresh
+        n, off = n[up], (a[up] * n[up]).sum(1)  # plane: x . n = off
+        pre = (np.abs(P[:presample] @ n.T - off) < thresh).sum(0)
+        top = np.argsort(-pre)[:finalists]
+        best = top[np.argmax((np.abs(P @ n[top].T - off[top]) < thresh).sum(0))]
+        inl = keep & (np.abs(points @ n[best] - off[best]) < thresh)
         if inl.sum() < min_fraction * n_all:
             break
         # Only scene-sized planes (floor, walls): both in-plane extents > min_extent m.
@@ -146,10 +167,9 @@ def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=2,
         e1 = np.cross(n[best], [1.0, 0, 0] if abs(n[best][0]) < 0.9 else [0, 1.0, 0])
         e1 /= np.linalg.norm(e1)
         e2 = np.cross(n[best], e1)
-        q = points[idx[inl]]
+        q = points[inl]
         u, v = q @ e1, q @ e2
-        lo_u, hi_u, lo_v, hi_v = (np.percentile(u, 2), np.percentile(u, 98),
-                                  np.percentile(v, 2), np.percentile(v, 98))
+        (lo_u, hi_u), (lo_v, hi_v) = np.percentile(u, (2, 98)), np.percentile(v, (2, 98))
         if min(hi_u - lo_u, hi_v - lo_v) < min_extent:
             break
         # A floor fills its extent; a thin horizontal slice through several people at
@@ -157,83 +177,143 @@ def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=2,
         cu = ((u - lo_u) / 0.1).astype(np.int64)
         cv = ((v - lo_v) / 0.1).astype(np.int64)
         ok2 = (cu >= 0) & (cv >= 0) & (u <= hi_u) & (v <= hi_v)
-        cells = len(set(zip(cu[ok2].tolist(), cv[ok2].tolist())))
-        if cells < 0.35 * ((hi_u - lo_u) / 0.1 + 1) * ((hi_v - lo_v) / 0.1 + 1):
+        occupied = np.zeros((int((hi_u - lo_u) / 0.1) + 1, int((hi_v - lo_v) / 0.1) + 1), bool)
+        occupied[cu[ok2], cv[ok2]] = True
+        if occupied.sum() < 0.35 * ((hi_u - lo_u) / 0.1 + 1) * ((hi_v - lo_v) / 0.1 + 1):
             break
-        keep[idx[inl]] = False
+        keep &= ~inl
     return keep
+
+
+def _depth_edges(depth: np.ndarray, s: int) -> np.ndarray:
+    """Edges at depth discontinuities on the image decimated by s: (ceil(H/s), ceil(W/s)).
+
+    A jump of more than 6 cm (scaled with depth: Kinect quantisation grows with z^2;
+    invalid pixels count as 0) between neighbouring full-image pixels marks the nearer
+    decimated pixel in its row or column (both when as near), so every jump on the way
+    between two decimated 4-neighbours cuts them apart. With s <= 2 this is the full-image
+    edge map (the pixels on both sides of a jump) sampled at the decimated pixels.
+    """
+    def marks(lines):  # (n, L) full-image lines -> (n, ceil(L / s)) edges on them
+        lines = np.nan_to_num(lines, nan=0.0)
+        n, length = lines.shape
+        m = -(-length // s)
+        jump = np.zeros((n, m * s), bool)  # [:, j]: between pixels j and j + 1
+        jump[:, :length - 1] = np.abs(np.diff(lines, axis=1)) > \
+            0.06 * np.maximum(lines[:, 1:] / 3.0, 1.0) ** 2
+        jump = jump.reshape(n, m, s)  # [:, c, i]: between pixels c * s + i and c * s + i + 1
+        edge = jump[:, :, :(s + 1) // 2].any(2)  # i <= (s - 1) / 2: nearer to pixel c
+        edge[:, 1:] |= jump[:, :-1, s // 2:].any(2)  # i >= (s - 1) / 2: nearer to c + 1
+        return edge
+
+    return marks(depth[::s]) | marks(depth[:, ::s].T).T
+
+
+def _label_medians(values: np.ndarray, labels: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+    """Median of `values` over each label, all labels in one sort (as ndimage.median).
+
+    Args:
+        values, labels: arrays of one shape; label 0 is ignored, labels 1..n all occur
+            (as ndimage.label numbers them).
+        sizes: (n + 1,) pixel count of each label 0..n (np.bincount of labels).
+
+    Returns:
+        (n + 1,) float64 medians (entry 0 meaningless).
+    """
+    fg = labels > 0
+    v = values[fg].astype(np.float64)
+    lo, span = v.min(), v.max() - v.min() + 1.0
+    key = np.sort(labels[fg] + (v - lo) / span)  # label + value mapped into [0, 1)
+    counts = sizes[1:]
+    start = np.cumsum(counts) - counts
+    middle = np.stack([key[start + (counts - 1) // 2], key[start + counts // 2]])
+    medians = np.zeros(len(sizes))
+    medians[1:] = lo + span * (middle - np.floor(middle)).mean(0)
+    return medians
 
 
 def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: float,
                  min_pixels: int = 400, max_persons: int = 5, seed: int = 0) -> list[Crop]:
-    """Person candidates in a depth image, most central first.
+    """Person candidates in a depth image, most central first (see the module doc).
 
     Args:
         depth: (H, W) float32 metres (0/NaN invalid).
         K: (3, 3) intrinsics.
+        min_pixels: smallest candidate blob, in full-image pixels.
 
     Returns:
-        Crops (with `mask`), at most max_persons.
+        Crops (with `mask`, and `exclude` where a neighbour is big enough), at most
+        max_persons.
     """
     H, W = depth.shape
-    d = np.nan_to_num(depth, nan=0.0)
+    s = max(1, round(W / DETECT_WIDTH))
+    d = np.nan_to_num(depth[::s, ::s], nan=0.0)  # pixel (r, c) is full-image (r * s, c * s)
+    min_px = min_pixels / s ** 2
     valid = (d >= depth_min) & (d <= depth_max)
-    # Subsample for plane removal (every 2nd pixel each way is plenty).
     r, c = np.nonzero(valid)
-    if len(r) < min_pixels:
+    if len(r) < min_px:
         return []
-    z = d[r, c].astype(np.float64)
-    pts = np.stack([(c - K[0, 2]) * z / K[0, 0], (r - K[1, 2]) * z / K[1, 1], z], 1)
-    keep = _remove_planes(pts, np.random.default_rng(seed))
+    keep = _remove_planes(_pixel_points(r * s, c * s, d[r, c], K),
+                          np.random.default_rng(seed))
     fg = np.zeros_like(valid)
-    fg[r[keep], c[keep]] = True
-    # Cut edges at depth discontinuities: a pixel is an edge if a 4-neighbour differs by
-    # more than 6 cm (scaled with depth: Kinect quantisation grows with z^2).
-    jump = 0.06 * np.maximum(d / 3.0, 1.0) ** 2
-    edge = np.zeros_like(fg)
-    dv = np.abs(np.diff(d, axis=0)) > jump[1:]
-    dh = np.abs(np.diff(d, axis=1)) > jump[:, 1:]
-    edge[1:] |= dv
-    edge[:-1] |= dv
-    edge[:, 1:] |= dh
-    edge[:, :-1] |= dh
-    lab, n = ndimage.label(fg & ~edge)
+    fg[valid] = keep
+    lab, n = ndimage.label(fg & ~_depth_edges(depth, s))
     if n == 0:
         return []
-    idx = np.arange(1, n + 1)
-    sizes = ndimage.sum_labels(np.ones_like(lab), lab, index=idx)
-    meds = ndimage.median(d, lab, index=idx)
+    sizes = np.bincount(lab.ravel(), minlength=n + 1)  # by label; [0] is the background
     slices = ndimage.find_objects(lab)
+    medians = _label_medians(d, lab, sizes)
+    grow = math.ceil(GROW_PX / s)  # dilations of a decimated blob: >= GROW_PX full-image px
     crops = []
     used = np.zeros(n + 1, bool)
-    for k in np.argsort(-sizes):
-        if sizes[k] < min_pixels:
+    for k in np.argsort(-sizes[1:]) + 1:
+        if sizes[k] < min_px:
             break
-        if used[k + 1]:
+        if used[k]:
             continue
         # Self-occlusion (an arm in front of the torso) cuts a person into several
         # components: merge the smaller ones inside the (expanded) box at a similar depth.
-        sl = slices[k]
-        r0, r1, c0, c1 = sl[0].start, sl[0].stop, sl[1].start, sl[1].stop
-        pad_r, pad_c = (r1 - r0) // 8 + 2, (c1 - c0) // 4 + 2
-        box = lab[max(r0 - pad_r, 0):r1 + pad_r, max(c0 - pad_c, 0):c1 + pad_c]
-        near = [j for j in np.unique(box) if j > 0 and j != k + 1 and not used[j]
-                and sizes[j - 1] < 0.6 * sizes[k] and abs(meds[j - 1] - meds[k]) < 0.3]
-        m = np.isin(lab, [k + 1] + near)
-        rr, cc = np.nonzero(m)
-        zz = d[rr, cc]
-        med = float(np.median(zz))
-        P = np.stack([(cc - K[0, 2]) * zz / K[0, 0], (rr - K[1, 2]) * zz / K[1, 1], zz], 1)
-        lo, hi = np.percentile(P, 2, axis=0), np.percentile(P, 98, axis=0)
+        rows, cols = slices[k - 1]
+        pad_r, pad_c = (rows.stop - rows.start) // 8 + 2, (cols.stop - cols.start) // 4 + 2
+        box = lab[max(rows.start - pad_r, 0):rows.stop + pad_r,
+                  max(cols.start - pad_c, 0):cols.stop + pad_c]
+        ids = np.flatnonzero(np.bincount(box.ravel(), minlength=n + 1))
+        near = ids[(ids > 0) & (ids != k) & ~used[ids] & (sizes[ids] < 0.6 * sizes[k])
+                   & (np.abs(medians[ids] - medians[k]) < 0.3)]
+        group = [k, *near]
+        # The group's bounding box (merged components may reach out of `box`), with room
+        # for growing the mask.
+        r0 = max(min(slices[j - 1][0].start for j in group) - grow, 0)
+        r1 = max(slices[j - 1][0].stop for j in group) + grow
+        c0 = max(min(slices[j - 1][1].start for j in group) - grow, 0)
+        c1 = max(slices[j - 1][1].stop for j in group) + grow
+        in_group = np.zeros(n + 1, bool)
+        in_group[group] = True
+        blob = in_group[lab[r0:r1, c0:c1]]
+        rr, cc = np.nonzero(blob)
+        zz = d[r0:r1, c0:c1][rr, cc]
+        rr, cc = rr + r0, cc + c0
+        step = -(-len(zz) // 2000)  # the 3D size from at most 2000 of the blob's pixels
+        lo, hi = np.percentile(_pixel_points(rr[::step] * s, cc[::step] * s, zz[::step], K),
+                               (2, 98), axis=0)
         height, width = hi[1] - lo[1], max(hi[0] - lo[0], hi[2] - lo[2])
         if not (0.4 <= height <= 2.6 and width <= 1.6):
             continue
-        used[[k + 1] + near] = True
-        # Grow back the edge pixels adjacent to the blob at similar depth.
-        grown = ndimage.binary_dilation(m, iterations=3) & valid & (np.abs(d - med) < 0.8)
-        crops.append((float(np.hypot(cc.mean() - W / 2, rr.mean() - H / 2)),
-                      square_crop(cc.min(), rr.min(), cc.max(), rr.max(), median_depth=med,
-                                  mask=grown)))
+        used[group] = True
+        med = float(np.median(zz))
+        # Full-image mask: the blob's s x s blocks, grown back over the edge pixels, where
+        # the depth is valid and near the person's.
+        grown = ndimage.binary_dilation(blob, iterations=grow)
+        win = np.s_[r0 * s:r1 * s, c0 * s:c1 * s]
+        z = depth[win]
+        mask = np.zeros((H, W), bool)
+        mask[win] = np.repeat(np.repeat(grown, s, 0), s, 1)[:z.shape[0], :z.shape[1]] & \
+            (z >= depth_min) & (z <= depth_max) & (np.abs(z - med) < GROW_DEPTH)
+        centre = (cc.mean() * s + (s - 1) / 2, rr.mean() * s + (s - 1) / 2)
+        crops.append((float(np.hypot(centre[0] - W / 2, centre[1] - H / 2)),
+                      square_crop(cc.min() * s, rr.min() * s, min(cc.max() * s + s - 1, W - 1),
+                                  min(rr.max() * s + s - 1, H - 1), median_depth=med,
+                                  mask=mask)))
         if len(crops) >= 3 * max_persons:
             break
     crops.sort(key=lambda t: t[0])
