@@ -10,6 +10,7 @@ import time
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 from smpl_depth_ros.body import load_body_model
 from smpl_depth_ros.config import PipelineConfig
@@ -72,7 +73,12 @@ class Reconstructor:
         self.net = CorrespondenceNet(self.body, config.weights_path, device=self.device)
         self.fitter = Fitter(self.body, config.fit)
         self.faces = self.body.faces_numpy()
-        self._track = None  # (BodyParams, stamp_ns)
+        parts = self.body.part_labels.cpu().numpy()
+        valid = self.body.valid_vertices.cpu().numpy()
+        self._part_of_vertex = parts
+        self._part_vertices = [np.flatnonzero((parts == p) & valid)
+                               for p in range(int(parts.max()) + 1)]
+        self._track = None  # (FitResult, stamp_ns) of the tracked person
 
     def reset(self) -> None:
         """Forget the tracking state (next frame is fitted cold)."""
@@ -141,19 +147,19 @@ class Reconstructor:
                            1).astype(np.float32)
             tf = time.perf_counter()
             timings['correspondence'] += (tf - tc) * 1e3
-            fit, tracked = self._fit(pts, vids, stamp_ns, first=not persons)
+            fit, vids, tracked = self._fit(pts, vids, stamp_ns, first=not persons)
             if fit.median_residual > cfg.reject_residual_m:
                 # The body model cannot explain this blob: not a person (or a failed fit).
                 timings['fit'] += (time.perf_counter() - tf) * 1e3
                 if not persons:
                     self.reset()
                 continue
-            for _ in range(cfg.fit.icp_rounds):
+            for _ in range(0 if tracked else cfg.fit.icp_rounds):
                 vids = self._refine_correspondences(pts, vids, fit.vertices)
                 fit = self.fitter.fit(pts, vids, init=fit.params, fix_shape=False,
                                       iterations=cfg.fit.tracking_iterations)
             if not persons and cfg.tracking and self._track is not None:
-                self._track = (fit.params, stamp_ns)
+                self._track = (fit, stamp_ns)
             timings['fit'] += (time.perf_counter() - tf) * 1e3
             mask = self._paste_labels(labels_full, crop, lab[i], d)
             persons.append(PersonResult(
@@ -173,31 +179,39 @@ class Reconstructor:
         """ICP step inside the predicted part: each point takes the nearest vertex of the
         fitted mesh among the vertices of its Eq. 2 vertex's part (the network decides
         the part, the geometry the exact vertex)."""
-        body = self.body
-        P = torch.as_tensor(pts, device=self.device)
-        V = torch.as_tensor(vertices, device=self.device, dtype=P.dtype)
-        parts = body.part_labels
-        pp = parts[torch.as_tensor(vids, device=self.device)]
-        d = torch.cdist(P, V)
-        d.masked_fill_(parts[None, :] != pp[:, None], float('inf'))
-        d.masked_fill_(~body.valid_vertices[None, :], float('inf'))
-        return d.argmin(1).cpu().numpy()
+        pp = self._part_of_vertex[vids]
+        out = np.array(vids, np.int64)
+        for p in np.unique(pp):
+            vi = self._part_vertices[p]
+            if not len(vi):
+                continue
+            m = pp == p
+            out[m] = vi[cKDTree(vertices[vi]).query(pts[m])[1]]
+        return out
 
     def _fit(self, pts, vids, stamp_ns, first: bool):
+        """Fit one person: tracked (the Eq. 2 correspondences refined on the previous
+        frame's mesh, then a warm-started fit) while the track holds, else cold.
+
+        Returns (FitResult, correspondences used, tracked).
+        """
         cfg = self.config
         if first and cfg.tracking and self._track is not None:
             prev, prev_stamp = self._track
             gap_ok = (stamp_ns is None or prev_stamp is None or
                       0 <= (stamp_ns - prev_stamp) * 1e-9 <= cfg.tracking_max_gap_s)
             if gap_ok:
-                fit = self.fitter.fit(pts, vids, init=prev)
+                tv = vids
+                for _ in range(cfg.fit.icp_rounds):
+                    tv = self._refine_correspondences(pts, tv, prev.vertices)
+                fit = self.fitter.fit(pts, tv, init=prev.params)
                 if fit.median_residual <= cfg.fit.lost_residual_m:
-                    self._track = (fit.params, stamp_ns)
-                    return fit, True
+                    self._track = (fit, stamp_ns)
+                    return fit, tv, True
         fit = self.fitter.fit(pts, vids)
         if first:
-            self._track = (fit.params, stamp_ns) if cfg.tracking else None
-        return fit, False
+            self._track = (fit, stamp_ns) if cfg.tracking else None
+        return fit, vids, False
 
     @staticmethod
     def _blob_fraction(crop, valid) -> float:
@@ -217,14 +231,15 @@ class Reconstructor:
         m = np.zeros((H, W), bool)
         if u1 <= u0 or v1 <= v0:
             return m
-        r, c = np.mgrid[v0:v1, u0:u1]
-        i = np.clip(((r + 0.5 - crop.v0) / crop.scale).astype(np.int64), 0, crop.size - 1)
-        j = np.clip(((c + 0.5 - crop.u0) / crop.scale).astype(np.int64), 0, crop.size - 1)
-        v = lab[i, j]
-        keep = (v > 0) & (depth[r, c] > 0) & \
-            (np.abs(depth[r, c] - crop.median_depth) < 1.0)
+        i = np.clip(((np.arange(v0, v1) + 0.5 - crop.v0) / crop.scale).astype(np.int64), 0,
+                    crop.size - 1)
+        j = np.clip(((np.arange(u0, u1) + 0.5 - crop.u0) / crop.scale).astype(np.int64), 0,
+                    crop.size - 1)
+        v = lab[np.ix_(i, j)]
+        dw = depth[v0:v1, u0:u1]
+        keep = (v > 0) & (dw > 0) & (np.abs(dw - crop.median_depth) < 1.0)
         if crop.exclude is not None:
-            keep &= ~crop.exclude[r, c]
-        labels_full[r[keep], c[keep]] = v[keep]
-        m[r[keep], c[keep]] = True
+            keep &= ~crop.exclude[v0:v1, u0:u1]
+        labels_full[v0:v1, u0:u1][keep] = v[keep]
+        m[v0:v1, u0:u1] = keep
         return m

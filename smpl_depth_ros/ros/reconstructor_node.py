@@ -76,10 +76,11 @@ _CORE_DOC = {
     'fit.tracking_iterations': 'fitting: warm-start iterations while tracking',
     'fit.lbfgs_iterations': 'fitting: L-BFGS iterations',
     'fit.lbfgs_lr': 'fitting: L-BFGS learning rate',
-    'fit.max_points': 'fitting: correspondences kept per frame',
+    'fit.max_points': 'fitting: per-vertex targets kept per frame',
     'fit.lost_residual_m': 'fitting: median residual above which the track is lost (m)',
     'fit.icp_rounds': 'fitting: part-constrained nearest-vertex refinements after the '
                       'correspondence fit (0 = none)',
+    'fit.segment_init': 'fitting: cold fits start from per-segment closed-form rotations',
     'fit.flip_restart': 'fitting: cold fits retry turned 180 degrees when the fit is poor',
     'fit.flip_residual_m': 'fitting: median residual that triggers that retry (m)',
 }
