@@ -190,8 +190,9 @@ class Reconstructor:
         return out
 
     def _fit(self, pts, vids, stamp_ns, first: bool):
-        """Fit one person: tracked (the Eq. 2 correspondences refined on the previous
-        frame's mesh, then a warm-started fit) while the track holds, else cold.
+        """Fit one person: warm-started from the previous frame while the track holds
+        (refining the correspondences on the previous, moved mesh was measured to lock
+        onto wrong poses), else cold.
 
         Returns (FitResult, correspondences used, tracked).
         """
@@ -201,13 +202,10 @@ class Reconstructor:
             gap_ok = (stamp_ns is None or prev_stamp is None or
                       0 <= (stamp_ns - prev_stamp) * 1e-9 <= cfg.tracking_max_gap_s)
             if gap_ok:
-                tv = vids
-                for _ in range(cfg.fit.icp_rounds):
-                    tv = self._refine_correspondences(pts, tv, prev.vertices)
-                fit = self.fitter.fit(pts, tv, init=prev.params)
+                fit = self.fitter.fit(pts, vids, init=prev.params)
                 if fit.median_residual <= cfg.fit.lost_residual_m:
                     self._track = (fit, stamp_ns)
-                    return fit, tv, True
+                    return fit, vids, True
         fit = self.fitter.fit(pts, vids)
         if first:
             self._track = (fit, stamp_ns) if cfg.tracking else None

@@ -283,7 +283,9 @@ class Fitter:
         """Exact first-order rest geometry of the whole mesh at `shape` (cached):
         rest vertices (V, 3), their shape Jacobian (V, 3, S), rest heads (Jb, 3) and their
         Jacobian (Jb, 3, S)."""
-        key = np.asarray(shape, np.float64).tobytes()
+        # Keyed at float32 precision: a warm start's shape comes back through BodyParams.
+        shape = np.asarray(shape, np.float32).astype(np.float64)
+        key = shape.tobytes()
         hit = self._rest_cache.get(key)
         if hit is None:
             body = self.body
@@ -291,7 +293,7 @@ class Fitter:
             with torch.no_grad():
                 hit = tuple(t.detach().cpu().double().numpy()
                             for t in body.rest_linear(s, None))
-            hit = (np.asarray(shape, np.float64).copy(),) + hit
+            hit = (shape,) + hit
             if len(self._rest_cache) >= 16:
                 self._rest_cache.pop(next(iter(self._rest_cache)))
             self._rest_cache[key] = hit
