@@ -99,5 +99,14 @@ class EmbeddingIndex:
 
 
 def labels_to_rgb(labels: np.ndarray) -> np.ndarray:
-    """(H, W) class ids -> (H, W, 3) uint8 colours."""
-    return PART_COLORS_U8[np.clip(labels, 0, NUM_CLASSES - 1)]
+    """(H, W) class ids -> (H, W, 3) uint8 colours (the colour lookup only runs over the
+    bounding box of the body pixels: a person covers a small part of a frame)."""
+    labels = np.asarray(labels)
+    out = np.empty(labels.shape + (3,), np.uint8)
+    out[...] = PART_COLORS_U8[0]
+    body = labels != 0
+    rows, cols = np.flatnonzero(body.any(1)), np.flatnonzero(body.any(0))
+    if len(rows):
+        win = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+        out[win] = np.take(PART_COLORS_U8, np.clip(labels[win], 0, NUM_CLASSES - 1), axis=0)
+    return out

@@ -157,7 +157,10 @@ def bench_node(args) -> dict:
     from smpl_depth_ros.bagio import iter_depth_bag
     from smpl_depth_ros.ros import adapters
 
-    frames = [(d, K) for _, d, K in iter_depth_bag(args.bag)][:30]
+    # Up to 150 frames played forwards then backwards (a sequence bag has no jump
+    # where the loop restarts, as a live camera has none).
+    frames = [(d, K) for _, (_, d, K) in zip(range(150), iter_depth_bag(args.bag))]
+    frames = frames + frames[-2:0:-1]
     H, W = frames[0][0].shape
     exe = [sys.executable, '-m', 'smpl_depth_ros.ros.reconstructor_node', '--ros-args',
            '-r', 'depth:=/bench/depth', '-r', 'camera_info:=/bench/camera_info',
@@ -248,7 +251,8 @@ def main(argv=None) -> int:
     nb.add_argument('--threads', type=int, default=0)
     nb.add_argument('--json', default=None)
     nd = sub.add_parser('node', help='reconstructor node under a 30 Hz depth stream')
-    nd.add_argument('bag', help='depth bag (e.g. from synth_bag); up to 30 frames cycled')
+    nd.add_argument('bag', help='depth bag (e.g. from synth_bag); up to 150 frames played '
+                    'forwards and backwards in a loop')
     nd.add_argument('--frames', type=int, default=2000)
     nd.add_argument('--rate', type=float, default=30.0)
     nd.add_argument('--json', default=None)
