@@ -82,7 +82,8 @@ MESH_FORMATS = ('ply', 'obj', 'glb')
 # Node parameters that matter offline (the rest are about QoS and live diagnostics).
 NODE_OPTIONS = {'publish_mesh': True, 'publish_segmentation': True, 'publish_params': True,
                 'publish_skeleton': True, 'mesh_decimation': 1.0, 'mesh_lifetime_s': 0.5}
-NODE_ONLY = {'qos_reliability', 'qos_depth', 'diagnostics_period_s', 'warn_throttle_s'}
+NODE_ONLY = {'qos_reliability', 'qos_depth', 'diagnostics_period_s', 'warn_throttle_s',
+             'cpu_threads'}  # offline: threads follow --workers
 EXIT_OK, EXIT_USAGE, EXIT_DAMAGED, EXIT_INTERRUPTED = 0, 1, 3, 130
 
 
@@ -773,15 +774,16 @@ class FrameProcessor:
     def _messages(self, res, persons, job: Job) -> list[tuple[str, bytes]]:
         A, f, o, ts = self.A, self.msgs, self.opts, self.typestore
         header = A.make_header(None, f, stamp_ns=job.stamp_ns, frame_id=job.frame_id)
-        msgs = []
+        msgs = []  # (key, message or its CDR bytes), in publishing order
         if o.publish_segmentation:
             rgb, ids = A.labels_to_image_msgs(res.labels, header, msgs=f)
             msgs += [('segmentation', rgb), ('labels', ids)]
         for i, person in enumerate(persons):
-            if o.publish_mesh:
-                msgs.append(('mesh', A.mesh_marker(person.vertices, self.marker_faces, header,
-                                                   id=i, lifetime_s=o.mesh_lifetime_s,
-                                                   msgs=f)))
+            if o.publish_mesh:  # points spliced in as one block (A.marker_cdr)
+                empty = A.mesh_marker(np.zeros((0, 3)), np.zeros((0, 3), np.int64), header,
+                                      id=i, lifetime_s=o.mesh_lifetime_s, msgs=f)
+                msgs.append(('mesh', A.marker_cdr(
+                    ts, empty, person.vertices[self.marker_faces.reshape(-1)])))
             if o.publish_skeleton:
                 msgs.append(('skeleton', A.skeleton_markers(person.joints, self.parents,
                                                             header, id=i,
@@ -790,7 +792,8 @@ class FrameProcessor:
             if i == 0 and o.publish_params:
                 msgs.append(('smpl_params', A.params_to_joint_state(person, self.body, header,
                                                                     msgs=f)))
-        return [(k, bytes(ts.serialize_cdr(m, OUTPUTS[k][1]))) for k, m in msgs]
+        return [(k, m if isinstance(m, bytes) else bytes(ts.serialize_cdr(m, OUTPUTS[k][1])))
+                for k, m in msgs]
 
     def _export(self, persons, job: Job) -> list[str]:
         import trimesh

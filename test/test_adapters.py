@@ -331,3 +331,17 @@ def test_headers_cross_systems():
     assert m.header.frame_id == 'cam'
     with pytest.raises(TypeError):
         A.as_factory(42)
+
+
+@pytest.mark.parametrize('n', [0, 1, 7, 7362])
+def test_marker_cdr_equals_rosbags_serialisation(n):
+    f = A.rosbags_factory()
+    ts = f.typestore
+    xyz = np.random.default_rng(n).normal(size=(n, 3))
+    m = A.mesh_marker(np.zeros((0, 3)), np.zeros((0, 3), np.int64), msgs=f,
+                      header=A.make_header(None, f, stamp_ns=123456789012, frame_id='cam'))
+    fast = A.marker_cdr(ts, m, xyz)
+    m.points = f.points(xyz)
+    assert fast == bytes(ts.serialize_cdr(m, 'visualization_msgs/msg/Marker'))
+    back = ts.deserialize_cdr(fast, 'visualization_msgs/msg/Marker')
+    assert len(back.points) == n and back.header.frame_id == 'cam'

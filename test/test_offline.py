@@ -410,7 +410,7 @@ def test_params_file_and_overrides(tmp_path):
         elif hasattr(cfg, name):
             assert getattr(cfg, name) == value, name
     assert set(ignored) == {'qos_reliability', 'qos_depth', 'diagnostics_period_s',
-                            'warn_throttle_s'}
+                            'warn_throttle_s', 'cpu_threads'}
     f = tmp_path / 'p.yaml'
     f.write_text('/**:\n  ros__parameters:\n    depth_max: 5\n    fit:\n      iterations: 7\n'
                  '/robot/reconstructor:\n  ros__parameters:\n    depth_max: 4.5\n'
