@@ -783,7 +783,7 @@ class FrameProcessor:
                 empty = A.mesh_marker(np.zeros((0, 3)), np.zeros((0, 3), np.int64), header,
                                       id=i, lifetime_s=o.mesh_lifetime_s, msgs=f)
                 msgs.append(('mesh', A.marker_cdr(
-                    ts, empty, person.vertices[self.marker_faces.reshape(-1)])))
+                    empty, person.vertices[self.marker_faces.reshape(-1)], f)))
             if o.publish_skeleton:
                 msgs.append(('skeleton', A.skeleton_markers(person.joints, self.parents,
                                                             header, id=i,

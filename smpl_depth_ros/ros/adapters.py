@@ -86,6 +86,13 @@ class MsgFactory:
             raise TypeError(f'{msgtype} has no field(s) {sorted(fields)}')
         return self.cls(msgtype)(**kw)
 
+    def serialize(self, msg, msgtype: str) -> bytes:
+        """CDR bytes of a message (rosbags' serializer or rclpy's)."""
+        if self.is_rosbags:
+            return bytes(self.typestore.serialize_cdr(msg, msgtype))
+        from rclpy.serialization import serialize_message
+        return serialize_message(msg)
+
     def _default(self, spec):
         kind, detail = spec
         kind = int(kind)
@@ -497,17 +504,19 @@ def mesh_marker(vertices: np.ndarray, faces: np.ndarray, header=None, ns: str = 
 _SENTINEL = (1.2345678901234567e-300, -7.654321098765432e-301, 3.141592653589793e-299)
 
 
-def marker_cdr(typestore, marker, xyz: np.ndarray) -> bytes:
-    """CDR bytes of a rosbags visualization_msgs/Marker with `points` = xyz (N, 3).
+def marker_cdr(marker, xyz: np.ndarray, msgs=None) -> bytes:
+    """CDR bytes of a visualization_msgs/Marker (rclpy or rosbags, see `as_factory`) with
+    `points` = xyz (N, 3).
 
-    rosbags' serializer visits every Point in Python (~60 ms for a body mesh); here the
-    marker is serialised with one sentinel point and the (aligned, little-endian) block
-    of N points is spliced in with numpy: identical bytes, a fraction of the time.
+    Both serializers visit every Point (rosbags in Python: ~60 ms for a body mesh); here
+    the marker is serialised with one sentinel point and the (aligned, little-endian)
+    block of N points is spliced in with numpy: identical bytes, a fraction of the time.
+    rclpy publishers take the bytes as they are.
     """
     import struct
-    P = typestore.types['geometry_msgs/msg/Point']
-    marker.points = [P(x=_SENTINEL[0], y=_SENTINEL[1], z=_SENTINEL[2])]
-    one = bytes(typestore.serialize_cdr(marker, 'visualization_msgs/msg/Marker'))
+    f = as_factory(msgs)
+    marker.points = f.points(np.array([_SENTINEL]))
+    one = f.serialize(marker, 'visualization_msgs/msg/Marker')
     at = one.find(struct.pack('<3d', *_SENTINEL))
     count = at - 4 if one[at - 4:at] == struct.pack('<I', 1) else at - 8
     if at < 0 or one[count:count + 4] != struct.pack('<I', 1) or one[:2] != b'\x00\x01':

@@ -564,9 +564,11 @@ class ReconstructorNode(Node):
                                     f'{self._config.depth_max} m'), header)
         lifetime = float(v['mesh_lifetime_s'])
         for i, person in enumerate(persons):
-            if v['publish_mesh']:
-                self._pub_mesh.publish(A.mesh_marker(person.vertices, self._mesh_faces(),
-                                                     header, id=i, lifetime_s=lifetime))
+            if v['publish_mesh']:  # serialised with the points as one block (faster)
+                empty = A.mesh_marker(np.zeros((0, 3)), np.zeros((0, 3), np.int64), header,
+                                      id=i, lifetime_s=lifetime)
+                self._pub_mesh.publish(A.marker_cdr(
+                    empty, person.vertices[self._mesh_faces().reshape(-1)]))
             if v['publish_skeleton']:
                 self._pub_skel.publish(A.skeleton_markers(person.joints, self._parents,
                                                           header, id=i, lifetime_s=lifetime))
