@@ -79,10 +79,12 @@ class Reconstructor:
         self._part_vertices = [np.flatnonzero((parts == p) & valid)
                                for p in range(int(parts.max()) + 1)]
         self._track = None  # (FitResult, stamp_ns) of the tracked person
+        self._track_mask = None  # its pixels in the last frame
 
     def reset(self) -> None:
         """Forget the tracking state (next frame is fitted cold)."""
         self._track = None
+        self._track_mask = None
 
     def set_fit_config(self, fit_cfg) -> None:
         self.config = self.config.with_overrides(**{f: getattr(fit_cfg, f) for f in
@@ -119,6 +121,8 @@ class Reconstructor:
                              f'{cfg.depth_max:.2f} m')
         persons = []
         x, lab, coords = [], [], []  # network inputs and outputs, per candidate so far
+        if len(crops) > cfg.max_persons:
+            crops, x, lab, coords = self._rank_candidates(d, crops, timings)
         for i, crop in enumerate(crops):
             if len(persons) >= cfg.max_persons:
                 break
@@ -162,6 +166,8 @@ class Reconstructor:
                 self._track = (fit, stamp_ns)
             timings['fit'] += (time.perf_counter() - tf) * 1e3
             mask = self._paste_labels(labels_full, crop, lab[i], d)
+            if not persons:
+                self._track_mask = mask if self._track is not None else None
             persons.append(PersonResult(
                 params=fit.params, vertices=fit.vertices, joints=fit.joints,
                 bbox=(int(crop.u0), int(crop.v0), int(crop.u0 + crop.scale * crop.size),
@@ -174,6 +180,38 @@ class Reconstructor:
                              'segmented no body in them')
         timings['total'] = (time.perf_counter() - t0) * 1e3
         return FrameResult(persons=persons, labels=labels_full, timings_ms=timings)
+
+    def _rank_candidates(self, d, crops, timings):
+        """Order person candidates when there are more than persons wanted.
+
+        While a person is tracked, the candidate that covers most of its previous pixels
+        comes first (no network needed). Otherwise the network runs on every candidate
+        and they are ordered by how much of a body it sees: the share of the blob it
+        labels as body times the number of parts covering >= 2 % of it (background
+        objects get few parts); the most central candidate is not always the person.
+
+        Returns (crops, network inputs, labels, coords): the outputs are filled for the
+        candidates the network already ran on.
+        """
+        prev = self._track_mask
+        if self.config.tracking and self._track is not None and prev is not None:
+            if prev.shape == d.shape:
+                order = np.argsort([-(c.mask & prev).sum() for c in crops], kind='stable')
+                return [crops[i] for i in order], [], [], []
+            return crops, [], [], []
+        tn = time.perf_counter()
+        x = np.stack([network_input(crop_depth(d, c), c.median_depth) for c in crops])
+        lab, coords = self.net.predict(x)
+        timings['network'] += (time.perf_counter() - tn) * 1e3
+        score = []
+        for xi, li in zip(x, lab):
+            fg = (li > 0) & (xi[1] > 0)
+            n = max(int(fg.sum()), 1)
+            parts = int((np.bincount(li[fg], minlength=2)[1:] >= 0.02 * n).sum())
+            score.append(-n / max(int((xi[1] > 0).sum()), 1) * parts)
+        order = np.argsort(score, kind='stable')
+        return ([crops[i] for i in order], [x[i] for i in order], [lab[i] for i in order],
+                [coords[i] for i in order])
 
     def _refine_correspondences(self, pts, vids, vertices):
         """ICP step inside the predicted part: each point takes the nearest vertex of the

@@ -511,10 +511,10 @@ class Fitter:
         N = len(pts)
         wsum = float(N) if wts is None else float(wts.sum())
         prob = self._problem(state[2], ids, joints)
-        # Cold fits hold the shape for the first third (pose first: shape steps taken
-        # while the pose is far off are noise, and each shape move costs a
-        # re-linearisation).
-        hold = 0 if sigma_start is None else iterations // 3
+        # Cold fits to surface points hold the shape for the first third (pose first:
+        # shape steps taken while the pose is far off are noise, and each shape move
+        # costs a re-linearisation); joint targets fix bone lengths from the start.
+        hold = 0 if sigma_start is None or joints else iterations // 3
         mu, prev, prev_sigma, it = 1e-3, None, None, 0
         for it in range(1, iterations + 1):
             free_shape = not fix_shape and it > hold
