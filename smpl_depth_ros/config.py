@@ -20,7 +20,7 @@ class FitConfig:
     gm_sigma_start: float = 0.1       # cold fits start wider and anneal to gm_sigma
     solver: str = 'fast'              # 'fast' (default) | 'lbfgs' (the paper's reference)
     iterations: int = 10              # cold-start iterations of the fast solver
-    tracking_iterations: int = 4      # warm-start iterations
+    tracking_iterations: int = 3      # warm-start iterations
     lbfgs_iterations: int = 20        # the paper's reference solver
     lbfgs_lr: float = 0.6
     max_points: int = 1000            # per-vertex targets kept per frame (random subset)

@@ -427,7 +427,7 @@ class Fitter:
             if self.cfg.segment_init and not targets_are_joints:
                 rot, transl, shape = self._initial_segments((rot, transl, shape), pts, ids,
                                                             wts)
-        state = (rot, transl, shape)
+        state, sq = (rot, transl, shape), None
         if solver == 'lbfgs':
             state, iters = self._lbfgs(state, pts, ids, wts, targets_are_joints,
                                        iterations or cfg.lbfgs_iterations, fix_shape)
@@ -435,22 +435,21 @@ class Fitter:
             n = iterations or (cfg.tracking_iterations if warm else cfg.iterations)
             s0 = None if warm else cfg.gm_sigma_start
             start = state
-            state, en, iters = self._levenberg_marquardt(state, pts, ids, wts,
-                                                         targets_are_joints, n, fix_shape, s0)
+            state, en, iters, sq = self._levenberg_marquardt(
+                state, pts, ids, wts, targets_are_joints, n, fix_shape, s0)
             if not warm and cfg.flip_restart and not targets_are_joints:
                 # Depth-only correspondences can confuse front and back: when the fit
                 # leaves a large residual, also try the init turned 180 deg about the
                 # body's vertical axis and keep the lower energy.
-                sq = self._evaluate(state, pts, ids, False)[0]
                 if np.sqrt(np.median(sq)) > cfg.flip_residual_m:
-                    alt, en2, it2 = self._levenberg_marquardt(
+                    alt, en2, it2, sq2 = self._levenberg_marquardt(
                         self._flipped(start, pts), pts, ids, wts, False, n, fix_shape, s0)
                     if en2 < en:
-                        state = alt
+                        state, sq = alt, sq2
                     iters += it2
         else:
             raise ValueError(f"unknown solver {solver!r} (expected 'fast' or 'lbfgs')")
-        return self._result(state, (pts, ids, wts), pts_all, ids_all, targets_are_joints,
+        return self._result(state, (pts, ids, wts, sq), pts_all, ids_all, targets_are_joints,
                             iters, t0, solver, warm)
 
     def fit_joints(self, joints, init: BodyParams | None = None, **kw) -> FitResult:
@@ -493,7 +492,8 @@ class Fitter:
         Rotations are updated multiplicatively (R_j <- exp(delta_j) R_j) with the analytic
         LBS Jacobian; translation additively; shape through the exact local linearisation
         of the rest geometry (re-linearised when it moves: anny's phenotype mapping is
-        piecewise linear). Returns (state, energy at the final scale, iterations).
+        piecewise linear). Returns (state, energy at the final scale, iterations, squared
+        residuals at that state).
         """
         cfg, rig = self.cfg, self.rig
         s_end = cfg.gm_sigma
@@ -589,8 +589,8 @@ class Fitter:
         sq = self._evaluate(state, pts, ids, joints)[0]
         en = self._energy_terms(state, sq, wts, s_end)[0]
         if prev is not None and prev_sigma == s_end and en > prev[0]:
-            en, state = prev[0], prev[1]
-        return state, en, it
+            en, state, sq = prev[0], prev[1], prev[2][0]
+        return state, en, it, sq
 
     def _flipped(self, state, pts):
         """The state turned 180 deg about the body's up axis, through the points' centroid."""
@@ -638,8 +638,9 @@ class Fitter:
         """FitResult: energy on the solver's targets, residuals of every input point."""
         rig = self.rig
         rot, transl, shape = state
-        pts, ids, wts = targets
-        sq = self._evaluate(state, pts, ids, joints)[0]
+        pts, ids, wts, sq = targets
+        if sq is None:
+            sq = self._evaluate(state, pts, ids, joints)[0]
         en, data, aa, _ = self._energy_terms(state, sq, wts, self.cfg.gm_sigma)
         s0, r0, A, h0, B = self._rest(shape)  # exact at the final shape
         G, x = rig.fk(rot, h0)
