@@ -111,7 +111,7 @@ def _group_median(values: np.ndarray, grp: np.ndarray, lo: np.ndarray, hi: np.nd
 
 
 def aggregate_by_vertex(points: np.ndarray, ids: np.ndarray, weights: np.ndarray | None = None,
-                        spread_m: float = 0.03):
+                        spread_m: float = 0.02):
     """One robust target per corresponded vertex.
 
     Many pixels share a vertex (a 1,229-vertex template spans ~3 cm between vertices):
