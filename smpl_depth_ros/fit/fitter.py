@@ -36,6 +36,7 @@ from smpl_depth_ros.types import BodyParams
 
 TORSO_PARTS = (1, 2)  # head + torso: the most rigid region, used for the rigid init
 MAX_RAW_POINTS = 20000  # input points aggregated per fit (a random subset beyond that)
+REST_CACHE_SIZE = 4  # shapes whose rest linearisation is kept (tracking reuses one)
 
 
 def backproject(depth: np.ndarray, K: np.ndarray, mask: np.ndarray | None = None):
@@ -294,7 +295,7 @@ class Fitter:
                 hit = tuple(t.detach().cpu().double().numpy()
                             for t in body.rest_linear(s, None))
             hit = (shape,) + hit
-            if len(self._rest_cache) >= 16:
+            if len(self._rest_cache) >= REST_CACHE_SIZE:  # ~210 kB each (anny)
                 self._rest_cache.pop(next(iter(self._rest_cache)))
             self._rest_cache[key] = hit
         return hit
