@@ -49,6 +49,7 @@ from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 
 from smpl_depth_ros.ros import adapters as A  # noqa: E402
 from smpl_depth_ros.ros import oak  # noqa: E402
+from smpl_depth_ros.ros.reconstructor_node import shutdown_rclpy  # noqa: E402
 
 NODE_NAME = 'oak_camera'
 DEPTH_TOPIC = 'depth/image_raw'
@@ -383,7 +384,7 @@ def main(argv: list[str] | None = None) -> int:
             if not node.stop():
                 node.get_logger().warning('the device thread did not stop in time')
             node.destroy_node()
-        rclpy.try_shutdown()
+        shutdown_rclpy()
     return code
 
 
@@ -450,7 +451,7 @@ def main_with_reconstructor(argv: list[str] | None = None) -> int:
             shutdown_executor(executor)
         for n in reversed(nodes):
             n.destroy_node()
-        rclpy.try_shutdown()
+        shutdown_rclpy()
     return code
 
 

@@ -706,8 +706,18 @@ def main(argv: list[str] | None = None) -> int:
             if not node.stop():
                 print('reconstructor: worker did not stop in time', file=sys.stderr)
             node.destroy_node()
-        rclpy.try_shutdown()
+        shutdown_rclpy()
     return code
+
+
+def shutdown_rclpy(context=None) -> None:
+    """rclpy.try_shutdown, tolerating the race with rclpy's own SIGINT/SIGTERM handler
+    (which may shut the context down between try_shutdown's check and its call)."""
+    try:
+        rclpy.try_shutdown(context=context)
+    except RuntimeError as e:  # rclpy's RCLError: 'rcl_shutdown already called'
+        if 'already called' not in str(e):
+            raise
 
 
 if __name__ == '__main__':

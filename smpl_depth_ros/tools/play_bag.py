@@ -105,6 +105,7 @@ def main(argv=None) -> int:
     from rclpy.serialization import deserialize_message
 
     from smpl_depth_ros.offline import BagInput, BagReadError, ProcessBagError
+    from smpl_depth_ros.ros.reconstructor_node import shutdown_rclpy
 
     raw_args = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(rclpy.utilities.remove_ros_args([PROG] + raw_args)[1:])
@@ -274,7 +275,7 @@ def main(argv=None) -> int:
             executor.shutdown(timeout_sec=1.0)
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown(context=context)
+        shutdown_rclpy(context=context)
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
     summary['seconds'] = round(time.monotonic() - t_begin, 2)
