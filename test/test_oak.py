@@ -39,7 +39,8 @@ from visualization_msgs.msg import Marker  # noqa: E402
 from smpl_depth_ros.ros import adapters as A  # noqa: E402
 from smpl_depth_ros.ros import oak  # noqa: E402
 from smpl_depth_ros.ros.oak_camera_node import (OakCameraNode,  # noqa: E402
-                                                make_reconstruct_oak, shutdown_executor)
+                                                make_reconstruct_oak)
+from smpl_depth_ros.ros.runner import shutdown_executor  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 PARAMS_FILE = REPO / 'config' / 'oak_camera.yaml'

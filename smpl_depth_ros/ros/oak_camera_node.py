@@ -35,11 +35,7 @@ from typing import Any, Callable  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-import rclpy  # noqa: E402
-import rclpy.logging  # noqa: E402
-import rclpy.utilities  # noqa: E402
-from rclpy.executors import (ExternalShutdownException, MultiThreadedExecutor,  # noqa: E402
-                             SingleThreadedExecutor)
+from rclpy.executors import MultiThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
@@ -49,7 +45,7 @@ from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 
 from smpl_depth_ros.ros import adapters as A  # noqa: E402
 from smpl_depth_ros.ros import oak  # noqa: E402
-from smpl_depth_ros.ros.reconstructor_node import shutdown_rclpy  # noqa: E402
+from smpl_depth_ros.ros.runner import ros_args, run_nodes  # noqa: E402
 
 NODE_NAME = 'oak_camera'
 DEPTH_TOPIC = 'depth/image_raw'
@@ -345,15 +341,9 @@ def depth_image_msg(depth: oak.DepthFrame, header) -> Image:
 
 
 # -- entry points ----------------------------------------------------------------------
-def _startup_error(name: str, e: Exception) -> int:
-    msg = str(e) if isinstance(e, (oak.DeviceNotFoundError, ValueError)) else \
+def _describe_startup_error(e: Exception) -> str:
+    return str(e) if isinstance(e, (oak.DeviceNotFoundError, ValueError)) else \
         f'{type(e).__name__}: {e}'
-    rclpy.logging.get_logger(name).fatal(msg)
-    return 1
-
-
-def _args(name: str, argv: list[str] | None) -> list[str]:
-    return [name] + (sys.argv[1:] if argv is None else list(argv))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -363,29 +353,8 @@ def main(argv: list[str] | None = None) -> int:
         argv: the command line after the program name (default sys.argv[1:]); ROS
             arguments follow `--ros-args` as with `ros2 run`.
     """
-    args = _args(NODE_NAME, argv)
-    rclpy.init(args=args)
-    node = None
-    code = 0
-    try:
-        extra = rclpy.utilities.remove_ros_args(args)[1:]
-        if extra:
-            print(f'oak_camera: ignoring unknown arguments {extra}', file=sys.stderr)
-        node = OakCameraNode()
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except Exception as e:  # start-up failure: one line, no traceback
-        code = _startup_error(NODE_NAME, e)
-    finally:
-        if node is not None:
-            if not node.stop():
-                node.get_logger().warning('the device thread did not stop in time')
-            node.destroy_node()
-        shutdown_rclpy()
-    return code
+    return run_nodes(NODE_NAME, ros_args(NODE_NAME, argv), lambda: [OakCameraNode()],
+                     describe=_describe_startup_error)
 
 
 def feed_reconstructor(reconstructor) -> Callable[[Image, CameraInfo], None]:
@@ -425,47 +394,9 @@ def main_with_reconstructor(argv: list[str] | None = None) -> int:
     parameter names do not overlap except warn_throttle_s.
     """
     name = 'reconstruct_oak'
-    args = _args(name, argv)
-    rclpy.init(args=args)
-    nodes = []
-    executor = None
-    code = 0
-    try:
-        extra = rclpy.utilities.remove_ros_args(args)[1:]
-        if extra:
-            print(f'{name}: ignoring unknown arguments {extra}', file=sys.stderr)
-        nodes = list(make_reconstruct_oak())
-        executor = MultiThreadedExecutor(num_threads=2)
-        for n in nodes:
-            executor.add_node(n)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except Exception as e:  # start-up failure: one line, no traceback
-        code = _startup_error(name, e)
-    finally:
-        for n in reversed(nodes):  # reconstructor first: its worker stops taking frames
-            if not n.stop():
-                n.get_logger().warning('a worker thread did not stop in time')
-        if executor is not None:
-            shutdown_executor(executor)
-        for n in reversed(nodes):
-            n.destroy_node()
-        shutdown_rclpy()
-    return code
-
-
-def shutdown_executor(executor, timeout_sec: float = 5.0):
-    """Shut down an executor that is no longer spinning.
-
-    A MultiThreadedExecutor's thread pool is drained first: a callback still running there
-    triggers the executor's guard condition when it ends, which Jazzy's `shutdown` destroys
-    without waiting for it ('cannot use Destroyable' at exit otherwise).
-    """
-    pool = getattr(executor, '_executor', None)  # MultiThreadedExecutor's ThreadPoolExecutor
-    if pool is not None and hasattr(pool, 'shutdown'):
-        pool.shutdown(wait=True)
-    executor.shutdown(timeout_sec=timeout_sec)
+    return run_nodes(name, ros_args(name, argv), make_reconstruct_oak,
+                     executor_factory=lambda: MultiThreadedExecutor(num_threads=2),
+                     describe=_describe_startup_error)
 
 
 if __name__ == '__main__':

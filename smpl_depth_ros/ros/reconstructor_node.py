@@ -29,10 +29,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-import rclpy
-import rclpy.logging
-import rclpy.utilities
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -44,6 +41,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from smpl_depth_ros.config import FitConfig, PipelineConfig
 from smpl_depth_ros.ros import adapters as A
+from smpl_depth_ros.ros.runner import ros_args, run_nodes
 from smpl_depth_ros.types import InputError
 
 NODE_NAME = 'reconstructor'
@@ -117,7 +115,8 @@ _FLOAT_RANGES = {
     'fit.flip_residual_m': (0.0, 10.0), 'reject_residual_m': (0.0, 10.0),
 }
 _INT_RANGES = {
-    'qos_depth': (1, 1000), 'cpu_threads': (0, 1024), 'max_persons': (1, 100), 'min_person_pixels': (1, 10_000_000),
+    'qos_depth': (1, 1000), 'cpu_threads': (0, 1024), 'max_persons': (1, 100),
+    'min_person_pixels': (1, 10_000_000),
     'max_image_pixels': (1, 1 << 30), 'fit.iterations': (0, 10_000),
     'fit.tracking_iterations': (0, 10_000), 'fit.lbfgs_iterations': (0, 10_000),
     'fit.max_points': (1, 10_000_000), 'fit.icp_rounds': (0, 100),
@@ -677,47 +676,11 @@ def main(argv: list[str] | None = None) -> int:
             arguments follow `--ros-args` as with `ros2 run`. `--print-params` prints
             the default parameters as a params file and exits.
     """
-    args = [NODE_NAME] + (sys.argv[1:] if argv is None else list(argv))
+    args = ros_args(NODE_NAME, argv)
     if '--print-params' in args[1:args.index('--ros-args') if '--ros-args' in args else None]:
         sys.stdout.write(params_yaml())
         return 0
-    node = None
-    code = 0
-    try:
-        # rclpy.init installs the SIGINT/SIGTERM handlers; torch and the model are
-        # imported and loaded after it (in the node), so an early Ctrl-C exits cleanly.
-        rclpy.init(args=args)
-        extra = rclpy.utilities.remove_ros_args(args)[1:]
-        if extra:
-            print(f'reconstructor: ignoring unknown arguments {extra}', file=sys.stderr)
-        executor = SingleThreadedExecutor()
-        node = ReconstructorNode()
-        executor.add_node(node)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except Exception as e:  # start-up failure: one line, no traceback
-        if rclpy.ok():
-            rclpy.logging.get_logger(NODE_NAME).fatal(f'{type(e).__name__}: {e}')
-            code = 1
-        # else: a signal shut the context down while starting (entity creation failed)
-    finally:
-        if node is not None:
-            if not node.stop():
-                print('reconstructor: worker did not stop in time', file=sys.stderr)
-            node.destroy_node()
-        shutdown_rclpy()
-    return code
-
-
-def shutdown_rclpy(context=None) -> None:
-    """rclpy.try_shutdown, tolerating the race with rclpy's own SIGINT/SIGTERM handler
-    (which may shut the context down between try_shutdown's check and its call)."""
-    try:
-        rclpy.try_shutdown(context=context)
-    except RuntimeError as e:  # rclpy's RCLError: 'rcl_shutdown already called'
-        if 'already called' not in str(e):
-            raise
+    return run_nodes(NODE_NAME, args, lambda: [ReconstructorNode()])
 
 
 if __name__ == '__main__':

@@ -105,7 +105,7 @@ def main(argv=None) -> int:
     from rclpy.serialization import deserialize_message
 
     from smpl_depth_ros.offline import BagInput, BagReadError, ProcessBagError
-    from smpl_depth_ros.ros.reconstructor_node import shutdown_rclpy
+    from smpl_depth_ros.ros.runner import shutdown_rclpy
 
     raw_args = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(rclpy.utilities.remove_ros_args([PROG] + raw_args)[1:])
