@@ -24,6 +24,8 @@ class FitConfig:
     lbfgs_iterations: int = 20        # the paper's reference solver
     lbfgs_lr: float = 0.6
     max_points: int = 1000            # per-vertex targets kept per frame (random subset)
+    min_cell_points: int = 2          # vertex cells with fewer points are dropped (when
+                                      # typical cells hold twice that): isolated outliers
     lost_residual_m: float = 0.06     # median residual above which the track is lost
     icp_rounds: int = 1               # part-constrained nearest-vertex refinements after
                                       # the Eq. 2 fit (0 = the paper's single fit)

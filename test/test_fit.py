@@ -122,3 +122,24 @@ def test_aggregate_by_vertex_is_robust():
     assert u.tolist() == [7]  # the scattered cell is dropped
     assert np.linalg.norm(t[0] - [1, 2, 3]) < 0.02  # the median ignores the outliers
     assert w[0] > 25  # a coherent cell keeps its weight
+
+
+def test_aggregate_drops_isolated_wrong_singletons():
+    from smpl_depth_ros.fit.fitter import aggregate_by_vertex
+    rng = np.random.default_rng(4)
+    # A 10x10 patch of template vertices 3 cm apart, seen 1:1 (template = observation),
+    # 10 pixels per vertex; vertex 100 is an edge vertex seen by a single pixel; 30
+    # singletons name random far-away vertices (isolated wrong correspondences).
+    g = np.stack(np.meshgrid(np.arange(10), np.arange(10)), -1).reshape(-1, 2) * 0.03
+    template = np.concatenate([np.c_[g, np.zeros(100)], [[0.30, 0.0, 0.0]],
+                               rng.uniform(1.0, 2.0, (30, 3))])
+    ids = np.concatenate([np.repeat(np.arange(100), 10), [100], 101 + np.arange(30)])
+    pts = template[np.r_[np.repeat(np.arange(100), 10), 100, rng.integers(0, 100, 30)]]
+    pts = pts + rng.normal(0, 0.004, pts.shape)
+    _, u, _ = aggregate_by_vertex(pts, ids, template=template)
+    assert set(u.tolist()) == set(range(101))  # the consistent edge singleton stays
+    _, u, _ = aggregate_by_vertex(pts, ids)  # no template: every singleton goes
+    assert set(u.tolist()) == set(range(100))
+    # A far person (about one pixel per vertex): singletons are all there is; all kept.
+    _, u, _ = aggregate_by_vertex(template[:100] + 0.001, np.arange(100))
+    assert len(u) == 100

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from smpl_depth_ros.body.base import BodyModel
@@ -112,7 +113,8 @@ def _group_median(values: np.ndarray, grp: np.ndarray, lo: np.ndarray, hi: np.nd
 
 
 def aggregate_by_vertex(points: np.ndarray, ids: np.ndarray, weights: np.ndarray | None = None,
-                        spread_m: float = 0.02):
+                        spread_m: float = 0.02, min_points: int = 2,
+                        template: np.ndarray | None = None, tolerance_m: float = 0.05):
     """One robust target per corresponded vertex.
 
     Many pixels share a vertex (a 1,229-vertex template spans ~3 cm between vertices):
@@ -123,6 +125,15 @@ def aggregate_by_vertex(points: np.ndarray, ids: np.ndarray, weights: np.ndarray
     0 beyond d > 3 spread_m: a coherent cell keeps its weight, a cell made of scattered
     wrong correspondences (e.g. a hidden vertex that only wrong pixels name) is dropped -
     a small weight would still drag a limb that nothing else constrains.
+
+    A cell also needs `min_points` points once the typical cell (the count-weighted
+    median) holds twice that: a visible vertex collects a patch of pixels, whereas
+    isolated wrong correspondences scatter over hundreds of otherwise empty cells, each a
+    perfectly "coherent" singleton. With 30 % wrong correspondences those singletons
+    carried 15-55 % of the total weight. Given the `template` (rest vertex positions), a
+    small cell is kept when it agrees with its nearest full cell instead: their vertices
+    are at most their observed distance + `tolerance_m` apart on the template (a genuine
+    sparse cell, e.g. a limb edge, sits beside its template neighbours).
 
     Returns:
         targets (M, 3), vertex ids (M,), weights (M,).
@@ -139,6 +150,17 @@ def aggregate_by_vertex(points: np.ndarray, ids: np.ndarray, weights: np.ndarray
         np.bincount(grp, np.asarray(weights, np.float64)[order], len(uniq))
     w = w / (1.0 + (spread / spread_m) ** 2)
     keep = spread <= 3 * spread_m
+    cs = np.sort(counts)
+    typical = cs[np.searchsorted(np.cumsum(cs), 0.5 * cs.sum())]
+    small = counts < min_points
+    if typical >= 2 * min_points and small.any():
+        full = keep & ~small
+        if template is not None and full.sum() >= 3:
+            d, nn = cKDTree(out[full]).query(out[small])
+            far = np.linalg.norm(template[uniq[small]] - template[uniq[full][nn]], axis=1)
+            keep[small] &= far <= d + tolerance_m
+        else:
+            keep &= ~small
     return out[keep], uniq[keep], w[keep]
 
 
@@ -278,6 +300,8 @@ class Fitter:
         _single_threaded_blas()
         self._rest_cache: dict[bytes, tuple] = {}
         self._rng = np.random.default_rng(0)
+        # Rest vertices at the mean shape: the template for the target consistency check.
+        self._template = self._rest(self.rig.shape_mean)[1]
 
     # ------------------------------------------------------------------ helpers
     def _rest(self, shape: np.ndarray):
@@ -410,7 +434,9 @@ class Fitter:
             if len(ids_all) > MAX_RAW_POINTS:  # a few dozen pixels per vertex are plenty
                 sel = self._rng.choice(len(ids_all), MAX_RAW_POINTS, replace=False)
             pts, ids, wts = aggregate_by_vertex(pts_all[sel], ids_all[sel],
-                                                None if wts_all is None else wts_all[sel])
+                                                None if wts_all is None else wts_all[sel],
+                                                min_points=cfg.min_cell_points,
+                                                template=self._template)
             if len(ids) > cfg.max_points:
                 sel = self._rng.permutation(len(ids))[:cfg.max_points]
                 pts, ids, wts = pts[sel], ids[sel], wts[sel]

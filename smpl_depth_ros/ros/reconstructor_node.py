@@ -76,6 +76,8 @@ _CORE_DOC = {
     'fit.lbfgs_iterations': 'fitting: L-BFGS iterations',
     'fit.lbfgs_lr': 'fitting: L-BFGS learning rate',
     'fit.max_points': 'fitting: per-vertex targets kept per frame',
+    'fit.min_cell_points': 'fitting: drop vertex cells with fewer points (isolated wrong '
+                           'correspondences), when typical cells hold twice that',
     'fit.lost_residual_m': 'fitting: median residual above which the track is lost (m)',
     'fit.icp_rounds': 'fitting: part-constrained nearest-vertex refinements after the '
                       'correspondence fit (0 = none)',
@@ -120,6 +122,7 @@ _INT_RANGES = {
     'max_image_pixels': (1, 1 << 30), 'fit.iterations': (0, 10_000),
     'fit.tracking_iterations': (0, 10_000), 'fit.lbfgs_iterations': (0, 10_000),
     'fit.max_points': (1, 10_000_000), 'fit.icp_rounds': (0, 100),
+    'fit.min_cell_points': (1, 1_000_000),
 }
 
 
