@@ -352,3 +352,15 @@ def test_marker_cdr_equals_full_serialisation(n, kind):
     assert back.points == ref.points and back.header == ref.header
     assert (back.ns, back.id, back.type, back.color, back.scale, back.lifetime) == \
         (ref.ns, ref.id, ref.type, ref.color, ref.scale, ref.lifetime)
+
+
+def test_cdr_stamp_ns_reads_the_header_of_serialized_messages(msgs, anny, anny_posed):
+    v, _ = anny_posed
+    hdr = A.make_header(stamp_ns=1_700_000_123_000_000_042, frame_id='cam', msgs=msgs)
+    for m, t in ((A.mesh_marker(v, anny.faces_numpy(), hdr, ns='mesh', id=0, msgs=msgs),
+                  'visualization_msgs/msg/Marker'),
+                 (A.depth_to_image_msg(np.ones((4, 5), np.float32), header=hdr, msgs=msgs),
+                  'sensor_msgs/msg/Image')):
+        assert A.cdr_stamp_ns(msgs.serialize(m, t)) == 1_700_000_123_000_000_042
+    with pytest.raises(ValueError):
+        A.cdr_stamp_ns(b'\x00')

@@ -37,6 +37,7 @@ from smpl_depth_ros.types import BodyParams
 
 TORSO_PARTS = (1, 2)  # head + torso: the most rigid region, used for the rigid init
 MAX_RAW_POINTS = 20000  # input points aggregated per fit (a random subset beyond that)
+RELIN_TOL = 0.03  # shape change that triggers a re-linearisation of the rest geometry
 REST_CACHE_SIZE = 4  # shapes whose rest linearisation is kept (tracking reuses one)
 
 
@@ -546,7 +547,7 @@ class Fitter:
         for it in range(1, iterations + 1):
             free_shape = not fix_shape and it > hold
             n = n_rot + 3 + (S if free_shape else 0)
-            if free_shape and np.abs(state[2] - prob[0]).max() > 0.01:
+            if free_shape and np.abs(state[2] - prob[0]).max() > RELIN_TOL:
                 prob = self._problem(state[2], ids, joints)  # re-linearise the shape
             sq, e, G, x, WQ = self._evaluate(state, pts, ids, joints, prob)
             sigma = sigma_at(it)
