@@ -265,6 +265,15 @@ class _Rig:
         return dx
 
     @staticmethod
+    def skin_points(W, G, x, heads, rest_pts):
+        """Posed points only (no per-bone terms): the blended transforms sum_b W_nb [G_b|t_b]
+        applied to each point, ~5x cheaper than `skin` for a whole mesh."""
+        tb = x - np.einsum('bij,bj->bi', G, heads)
+        M = W @ np.concatenate([G, tb[:, :, None]], 2).reshape(len(G), 12)
+        M = M.reshape(len(rest_pts), 3, 4)
+        return np.einsum('nij,nj->ni', M[:, :, :3], rest_pts) + M[:, :, 3]
+
+    @staticmethod
     def skin(W, G, x, heads, rest_pts):
         """Posed points v_n = sum_b WQ_nb, with the weighted per-bone terms
         WQ_nb = W_nb (G_b r_n + x_b - G_b h_b) (N, Jb, 3) that the Jacobian reuses."""
@@ -672,7 +681,7 @@ class Fitter:
         en, data, aa, _ = self._energy_terms(state, sq, wts, self.cfg.gm_sigma)
         s0, r0, A, h0, B = self._rest(shape)  # exact at the final shape
         G, x = rig.fk(rot, h0)
-        verts, _ = rig.skin(rig.weights, G, x, h0, r0 + self._pose_offsets(rot, None))
+        verts = rig.skin_points(rig.weights, G, x, h0, r0 + self._pose_offsets(rot, None))
         verts += transl
         model = (x[rig.jb] + transl)[ids_all] if joints else verts[ids_all]
         sq = ((model - pts_all) ** 2).sum(-1)
