@@ -28,8 +28,9 @@ processed or skipped with a reason ('no_camera_info', 'no_person', 'encoding',
 'size_mismatch', 'deserialize', ... the `types.InputError` reasons).
 
 Real bags: header stamps may go backwards (tracking is reset) or repeat (processed, marked
-``duplicate``); a camera_info that arrives after the first depth frames leaves those frames
-skipped as 'no_camera_info'; unknown topics are copied through; a truncated or corrupt bag
+``duplicate``); depth frames that arrive before the first camera_info of their frame_id
+wait for it (up to `MAX_WAITING_FOR_INFO` frames, then the oldest is skipped as
+'no_camera_info', as is any still waiting at the end of the bag); unknown topics are copied through; a truncated or corrupt bag
 stops the run with an error naming the file and the position, keeping everything read
 before it (the readable part of a truncated MCAP or sqlite3 file is recovered) and closing
 the output bag properly. Exit codes: 0 done, 1 unusable input or options, 3 the bag is
@@ -64,6 +65,7 @@ from smpl_depth_ros.config import FitConfig, PipelineConfig
 from smpl_depth_ros.types import InputError
 
 PROG = 'process_bag'
+MAX_WAITING_FOR_INFO = 30  # depth frames held for a camera_info that has not come yet
 DEFAULT_NS = '/reconstructor'
 DIAGNOSTICS_TOPIC = '/diagnostics'
 IMAGE_T = 'sensor_msgs/msg/Image'
@@ -1134,6 +1136,7 @@ class _BagRun:
             self.writer.close()
             raise
         self.cams: dict[str, Any] = {}           # frame_id -> (K, (w, h)) | InputError
+        self.waiting: deque = deque()            # depth frames waiting for a camera_info
         self.seen: dict[int, int] = {}           # header stamp -> times seen
         self.last_stamp: int | None = None
         self.rows: list[Outcome] = []
@@ -1187,6 +1190,8 @@ class _BagRun:
                 self.error = e
                 self.log(f'error: {e}; keeping the {len(self.bag_times)} depth frame(s) read '
                          'before it')
+            while self.waiting:
+                self._give_up_waiting('by the end of the bag')
             self.runner.flush(self.ready)
             self._drain(block=True)
         except KeyboardInterrupt:
@@ -1243,6 +1248,19 @@ class _BagRun:
             self.cams[fid] = (K, size)
         except InputError as e:
             self.cams[fid] = e
+        # Frames that came before their camera_info go now, in order.
+        ready = [w for w in self.waiting if w[3] == fid]
+        if ready:
+            self.waiting = deque(w for w in self.waiting if w[3] != fid)
+            for w in ready:
+                self._submit(*w)
+
+    def _give_up_waiting(self, why: str):
+        index, _msg, stamp, frame_id, _name = self.waiting.popleft()
+        others = ', '.join(f"'{k}'" for k in self.cams) or 'none'
+        self._skip(index, 'no_camera_info', f"no camera_info for frame_id '{frame_id}' on "
+                   f"'{self.info_topic}' {why} (camera_info frame_ids seen: {others})",
+                   stamp, frame_id)
 
     def _skip(self, index: int, reason: str, message: str, stamp_ns: int, frame_id: str):
         self.ready[index] = Outcome(index, reason, message, stamp_ns, frame_id)
@@ -1262,14 +1280,19 @@ class _BagRun:
         dup = stamp in self.seen
         self.seen[stamp] = self.seen.get(stamp, 0) + 1
         self.duplicate[-1] = dup
+        name = str(stamp) + (f'_{self.seen[stamp] - 1}' if dup else '')
+        if frame_id not in self.cams:
+            # Its camera_info may come next (recorders do not order the two topics).
+            self.waiting.append((index, msg, stamp, frame_id, name))
+            if len(self.waiting) > MAX_WAITING_FOR_INFO:
+                self._give_up_waiting(f'within {MAX_WAITING_FOR_INFO} depth frames')
+            return
+        self._submit(index, msg, stamp, frame_id, name)
+
+    def _submit(self, index: int, msg, stamp: int, frame_id: str, name: str):
         max_pixels = self.config.max_image_pixels
         try:
-            cam = self.cams.get(frame_id)
-            if cam is None:
-                others = ', '.join(f"'{k}'" for k in self.cams) or 'none'
-                raise InputError('no_camera_info', f"no camera_info for frame_id '{frame_id}' "
-                                 f"on '{self.info_topic}' before this frame (camera_info "
-                                 f'frame_ids so far: {others})')
+            cam = self.cams[frame_id]
             if isinstance(cam, InputError):
                 raise cam
             K, (cw, ch) = cam
@@ -1285,9 +1308,8 @@ class _BagRun:
             self._skip(index, e.reason, str(e), stamp, frame_id)
             return
         reset = self.last_stamp is not None and stamp < self.last_stamp
-        self.resets[-1] = reset
+        self.resets[index] = reset
         self.last_stamp = stamp
-        name = str(stamp) + (f'_{self.seen[stamp] - 1}' if dup else '')
         self.runner.submit(Job(index, stamp, frame_id, depth, K, reset, name), self.ready)
 
     # -- outputs -------------------------------------------------------------------------

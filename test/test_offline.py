@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from smpl_depth_ros import offline
 from smpl_depth_ros.config import PipelineConfig
 from smpl_depth_ros.offline import (NODE_OPTIONS, OUTPUTS, BagReadError, ProcessBagError,
                                     Topic, _Progress, config_from_params, load_params_file,
@@ -235,7 +236,7 @@ def test_messy_bag(core, seq_msgs, tmp_path):
     I, D = 'sensor_msgs/msg/CameraInfo', 'sensor_msgs/msg/Image'
     C = 'my_pkg/msg/Custom'
     msgs = [
-        (DEPTH, D, depth[0][0], depth[0][1]),                       # 0: no camera_info yet
+        (DEPTH, D, depth[0][0], depth[0][1]),                       # 0: waits for its info
         ('/extra', C, depth[0][0] + 1, bytes(store.serialize_cdr(custom(a=1, b='x'), C))),
         (INFO, I, info[1][0], info[1][1]),
         (DEPTH, D, depth[1][0], depth[1][1]),                       # 1: ok
@@ -254,27 +255,27 @@ def test_messy_bag(core, seq_msgs, tmp_path):
     summary = process_bag(storage_file(bag), tmp_path / 'out', reconstructor=core,
                           config=PipelineConfig(device='cpu'), **QUIET)
     assert summary['frames_read'] == 8
-    assert summary['skipped'] == {'no_camera_info': 1, 'deserialize': 1, 'encoding': 1}
-    assert summary['processed'] == 5
+    assert summary['skipped'] == {'deserialize': 1, 'encoding': 1}
+    assert summary['processed'] == 6
     assert summary['duplicates'] == 2 and summary['tracking_resets_backwards'] == 1
-    ok_stamps = [depth[1][0], depth[2][0], depth[2][0], depth[3][0], depth[1][0]]
+    ok_stamps = [depth[0][0], depth[1][0], depth[2][0], depth[2][0], depth[3][0], depth[1][0]]
     decoded, res = check_outputs(tmp_path / 'out', summary, ok_stamps)
-    assert list(res['status']) == ['no_camera_info', 'ok', 'ok', 'ok', 'deserialize',
-                                   'encoding', 'ok', 'ok']
+    assert list(res['status']) == ['ok', 'ok', 'ok', 'ok', 'deserialize', 'encoding', 'ok',
+                                   'ok']
     assert list(res['duplicate']) == [False, False, False, True, False, False, False, True]
     assert list(res['tracking_reset']) == [False] * 7 + [True]
-    assert res['stamps'][4] == -1 and not np.isfinite(res['transl'][0]).any()
-    assert 'camera_info' in str(res['message'][0]) and '16UC1' in str(res['message'][5])
-    # Outputs keep the input's bag times (the duplicate's and the backwards frame's too).
+    assert res['stamps'][4] == -1 and not np.isfinite(res['transl'][4]).any()
+    assert '16UC1' in str(res['message'][5])
+    # Outputs keep the input's bag times (the late-info, duplicate and backwards frames' too).
     assert [t for t, _ in decoded['/reconstructor/mesh']] == [
-        depth[1][0], depth[2][0], depth[2][0] + ms, depth[3][0], depth[3][0] + ms]
+        depth[0][0], depth[1][0], depth[2][0], depth[2][0] + ms, depth[3][0], depth[3][0] + ms]
     # The unknown topic is copied through with its definition and bytes.
     out_msgs = read_messages(tmp_path / 'out' / 'bag')
     assert [m for m in out_msgs if m[0] == '/extra'] == [m for m in msgs if m[0] == '/extra']
     # Skipped frames are visible in /diagnostics.
     reasons = {A.diagnostic_values(s).get('reason') for _, d in decoded['/diagnostics']
                for s in d.status if s.name.endswith(': input')}
-    assert reasons == {'no_camera_info', 'deserialize', 'encoding'}
+    assert reasons == {'deserialize', 'encoding'}
 
 
 @pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
@@ -307,10 +308,10 @@ def test_truncated_bag(core, seq_msgs, tmp_path, storage):
         process_bag(bag, tmp_path / 'out2', reconstructor=core, **QUIET)
 
 
-def test_existing_output_and_late_camera_info(core, seq_msgs, tmp_path, capsys):
+def test_existing_output_and_late_camera_info(core, seq_msgs, tmp_path, capsys, monkeypatch):
     """An existing output is refused without --overwrite (before any model is loaded);
     with it, our previous products are replaced and other files kept. Every frame of this
-    bag comes before its camera_info: all skipped, all accounted for."""
+    bag comes before its camera_info: they wait for it (bounded), all accounted for."""
     depth = [m for m in seq_msgs if m[0] == DEPTH]
     info = [m for m in seq_msgs if m[0] == INFO]
     late = depth[:3] + [(INFO, info[0][1], depth[2][2] + 1, info[0][3])]
@@ -325,10 +326,27 @@ def test_existing_output_and_late_camera_info(core, seq_msgs, tmp_path, capsys):
     assert (out / 'summary.json').read_text() == '{}'
     with pytest.raises(ProcessBagError, match='overlaps'):
         process_bag(bag, bag / 'inside', **QUIET)
+    # At most MAX_WAITING_FOR_INFO frames wait for their camera_info; older ones are
+    # skipped with the reason, the rest processed when it comes.
+    monkeypatch.setattr(offline, 'MAX_WAITING_FOR_INFO', 2)
     summary = process_bag(bag, out, overwrite=True, reconstructor=core, **QUIET)
-    assert summary['frames_read'] == 3 and summary['skipped'] == {'no_camera_info': 3}
-    assert summary['processed'] == 0 and (out / 'notes.txt').read_text() == 'mine'
-    check_outputs(out, summary, [])
+    assert summary['frames_read'] == 3 and summary['skipped'] == {'no_camera_info': 1}
+    assert summary['processed'] == 2 and (out / 'notes.txt').read_text() == 'mine'
+    _, res = check_outputs(out, summary, [m[2] for m in depth[1:3]])
+    assert 'within 2 depth frames' in str(res['message'][0])
+    # A camera_info (of this frame_id) that never comes: every frame skipped at the end,
+    # none silently.
+    from smpl_depth_ros.ros import adapters as A
+    f = A.rosbags_factory()
+    other = A.camera_info_msg(np.array([[285.0, 0, 160], [0, 285, 120], [0, 0, 1]]),
+                              (320, 240), A.make_header(stamp_ns=depth[0][2], frame_id='other',
+                                                        msgs=f), f)
+    raw = f.serialize(other, 'sensor_msgs/msg/CameraInfo')
+    bag = write_bag(tmp_path / 'noinfo', [(INFO, info[0][1], depth[0][2] - 1, raw)] + depth[:2])
+    summary = process_bag(bag, tmp_path / 'out2', reconstructor=core, **QUIET)
+    assert summary['skipped'] == {'no_camera_info': 2} and summary['processed'] == 0
+    _, res = check_outputs(tmp_path / 'out2', summary, [])
+    assert all('by the end of the bag' in str(m) for m in res['message'])
 
 
 def test_workers_keep_input_order(seq, tmp_path):
