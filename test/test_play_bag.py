@@ -159,6 +159,45 @@ def test_play_bag_plain(rclpy_context, bag):
         node.destroy_node()
 
 
+def test_play_bag_clock(rclpy_context, bag):
+    """--clock: /clock carries the bag's time, never going backwards, from the first
+    message's time to the last's."""
+    from rosbags.highlevel import AnyReader
+    from rosgraph_msgs.msg import Clock
+
+    from smpl_depth_ros.bagio import jazzy_typestore
+    with AnyReader([bag], default_typestore=jazzy_typestore()) as reader:
+        times = [t for c, t, _ in reader.messages() if c.topic == INFO]
+    node = rclpy.create_node('clock_probe', context=rclpy_context)
+    got, lock = [], threading.Lock()
+
+    def keep(msg):
+        with lock:
+            got.append(msg.clock.sec * 1_000_000_000 + msg.clock.nanosec)
+    node.create_subscription(Clock, '/clock', keep, QoSProfile(
+        depth=100, reliability=ReliabilityPolicy.RELIABLE))
+    ex = SingleThreadedExecutor(context=rclpy_context)
+    ex.add_node(node)
+    th = threading.Thread(target=lambda: _spin_quietly(ex), daemon=True)
+    th.start()
+    try:
+        code, summary, err = play(str(bag), '--topics', INFO, '--clock', '50',
+                                  '--wait-for-subscribers', '30', '--start-delay', '0.5')
+        assert code == 0, err
+        time.sleep(0.5)
+        with lock:
+            clk = list(got)
+        assert len(clk) >= FRAMES, clk
+        assert all(b >= a for a, b in zip(clk, clk[1:])), clk
+        assert clk[0] >= times[0] and clk[-1] >= times[-1], (clk, times)
+        assert clk[-1] <= times[-1] + 200_000_000  # 40 ms per timer tick at most, + slack
+        assert set(times) <= set(clk)  # published right before every message
+    finally:
+        ex.shutdown(timeout_sec=2.0)
+        th.join(5.0)
+        node.destroy_node()
+
+
 def _spin_quietly(ex):
     try:
         ex.spin()

@@ -3,6 +3,7 @@
     play_bag BAG [--rate 1.0] [--loop] [--topics T [T ...]] [--qos reliable|best_effort]
              [--start-delay 1.0] [--wait-for-subscribers 10] [--ros-args ...]
     play_bag BAG --pace /reconstructor/mesh --pace-timeout 30   # one frame at a time
+    play_bag BAG --clock        # also publish the bag time on /clock (use_sim_time)
 
 For machines with rclpy from pip but no `ros2 bag` (CI, a laptop without a ROS install):
 messages are read one at a time with `rosbags` (a rosbag2 directory, or one .mcap or .db3
@@ -25,6 +26,11 @@ wait until a message arrives on TOPIC (or --pace-timeout passes), then go on wit
 recorded timing from there. A node slower than the recording then gets every frame (no
 frame replaced in its one-slot queue), which makes a live run comparable frame by frame
 with `process_bag`.
+
+--clock [HZ]: publish rosgraph_msgs/Clock on /clock (as `ros2 bag play --clock`): the bag
+time at HZ (default 40) and right before every message, scaled by --rate, held while
+--pace waits; each --loop starts again at the bag's first time. Nodes run with
+`-p use_sim_time:=true` then see the recorded time.
 
 ROS arguments after --ros-args work as for any node: remap a recorded topic with
 `--ros-args -r /camera/depth/image_raw:=/depth`. Ctrl-C stops cleanly. A JSON summary
@@ -82,6 +88,8 @@ def build_parser() -> argparse.ArgumentParser:
                          'topic played)')
     ap.add_argument('--pace-timeout', type=float, default=30.0,
                     help='longest wait for a --pace message (s)')
+    ap.add_argument('--clock', type=float, nargs='?', const=40.0, default=0.0, metavar='HZ',
+                    help='publish the bag time on /clock at HZ (40 when no value is given)')
     ap.add_argument('--deserialize', action='store_true',
                     help='publish deserialized rclpy messages instead of the recorded CDR')
     ap.add_argument('--quiet', action='store_true', help='no log lines')
@@ -111,8 +119,8 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(rclpy.utilities.remove_ros_args([PROG] + raw_args)[1:])
     log = (lambda m: None) if args.quiet else (
         lambda m: print(f'{PROG}: {m}', file=sys.stderr, flush=True))
-    if args.rate <= 0:
-        print(f'{PROG}: error: --rate must be > 0', file=sys.stderr)
+    if args.rate <= 0 or args.clock < 0:
+        print(f'{PROG}: error: --rate must be > 0 and --clock >= 0', file=sys.stderr)
         return 1
 
     context = Context()
@@ -158,6 +166,26 @@ def main(argv=None) -> int:
             if not pubs:
                 raise ProcessBagError('nothing to play: no topic with an installed message '
                                       'type was selected')
+            # Bag time for /clock: t0 (ns) at wall time w0, or held at `hold` (ns).
+            clock = dict(t0=None, w0=0.0, hold=None)
+            if args.clock > 0:
+                from rosgraph_msgs.msg import Clock
+                clock_pub = node.create_publisher(Clock, '/clock', QoSProfile(
+                    depth=1, reliability=ReliabilityPolicy.RELIABLE))
+
+                def publish_clock(ns=None):
+                    if ns is None:
+                        if clock['t0'] is None:
+                            return
+                        ns = clock['hold'] if clock['hold'] is not None else clock['t0'] + \
+                            int((time.monotonic() - clock['w0']) * args.rate * 1e9)
+                    msg = Clock()
+                    msg.clock.sec, msg.clock.nanosec = divmod(int(ns), 1_000_000_000)
+                    clock_pub.publish(msg)
+                node.create_timer(1.0 / args.clock, publish_clock)
+            else:
+                def publish_clock(ns=None):
+                    pass
             log('publishing ' + ', '.join(f"'{p.topic_name}'" for p in pubs.values()) +
                 f' ({args.qos})')
 
@@ -230,8 +258,10 @@ def main(argv=None) -> int:
                 for topic, t_bag, raw in src.messages(playing):
                     if t0_bag is None:
                         t0_bag = t_bag
+                        clock.update(t0=t_bag, w0=w0)
                     due = w0 + (t_bag - t0_bag) * 1e-9 / args.rate
                     spin_for(max(0.0, due - time.monotonic()))
+                    publish_clock(t_bag)
                     name = topic.topic
                     data = bytes(raw)
                     if args.deserialize or name not in checked:
@@ -249,10 +279,12 @@ def main(argv=None) -> int:
                     if pace is not None and name == pace['after']:
                         before = pace['count']
                         t_wait = time.monotonic()
+                        clock['hold'] = t_bag
                         if not spin_for(args.pace_timeout, lambda: pace['count'] > before):
                             log(f'--pace: nothing on {pace_topic} within '
                                 f'{args.pace_timeout:g} s; going on')
                         w0 += time.monotonic() - t_wait  # keep the recorded spacing
+                        clock.update(w0=clock['w0'] + time.monotonic() - t_wait, hold=None)
                 summary['loops'] += 1
                 if not args.loop:
                     break
