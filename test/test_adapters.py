@@ -74,6 +74,17 @@ def test_depth_round_trip(msgs, encoding, bigendian, pad):
         np.testing.assert_array_equal(out, d)
 
 
+def test_depth_mm_message(msgs):
+    """Sensor millimetres go out as they are (no trip through metres)."""
+    mm = np.random.default_rng(2).integers(0, 65536, (5, 7)).astype(np.uint16)
+    m = wire(A.depth_mm_to_image_msg(mm, A.make_header(stamp_ns=3, frame_id='cam', msgs=msgs),
+                                     msgs), msgs)
+    assert (m.encoding, m.width, m.height, m.step) == ('16UC1', 7, 5, 14)
+    np.testing.assert_array_equal(A.image_to_depth(m), mm.astype(np.float32) * 0.001)
+    with pytest.raises(ValueError):
+        A.depth_mm_to_image_msg(mm.astype(np.float32))
+
+
 def test_depth_reader_against_hand_made_bytes(msgs):
     """Big-endian 16UC1 with a padded step, bytes written by hand (not by our writer)."""
     rows = [np.array([1000, 2500, 0], '>u2').tobytes() + b'\xff\xff',

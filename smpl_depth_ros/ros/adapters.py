@@ -295,6 +295,16 @@ def depth_to_image_msg(depth: np.ndarray, header=None, encoding: str = '32FC1', 
     return _image_msg(pix, header, encoding, f, step=step, bigendian=bigendian)
 
 
+def depth_mm_to_image_msg(depth_mm: np.ndarray, header=None, msgs=None):
+    """(H, W) uint16 millimetres (0 invalid), as sensors give them -> 16UC1 Image, no
+    conversion through metres."""
+    depth_mm = np.asarray(depth_mm)
+    if depth_mm.ndim != 2 or depth_mm.dtype != np.uint16:
+        raise ValueError(f'depth_mm must be (H, W) uint16, got {depth_mm.shape} '
+                         f'{depth_mm.dtype}')
+    return _image_msg(depth_mm, header, '16UC1', as_factory(msgs))
+
+
 def _image_msg(pix: np.ndarray, header, encoding: str, f: MsgFactory, *,
                step: int | None = None, bigendian: bool = False):
     h, w = pix.shape[:2]

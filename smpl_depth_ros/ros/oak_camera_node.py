@@ -337,7 +337,7 @@ class OakCameraNode(Node):
 
 def depth_image_msg(depth: oak.DepthFrame, header) -> Image:
     """16UC1 millimetre Image of a DepthFrame (through the shared adapter)."""
-    return A.depth_to_image_msg(depth.depth_m(), header, '16UC1')
+    return A.depth_mm_to_image_msg(depth.depth_mm, header)
 
 
 # -- entry points ----------------------------------------------------------------------
