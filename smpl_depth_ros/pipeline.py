@@ -16,7 +16,8 @@ from smpl_depth_ros.body import load_body_model
 from smpl_depth_ros.config import PipelineConfig
 from smpl_depth_ros.fit import Fitter, backproject  # noqa: F401  (re-exported)
 from smpl_depth_ros.net.infer import CorrespondenceNet
-from smpl_depth_ros.net.preprocess import crop_depth, find_persons, network_input
+from smpl_depth_ros.net.preprocess import (crop_depth, find_persons, network_input,
+                                           split_side_by_side)
 from smpl_depth_ros.types import FrameResult, InputError, PersonResult
 
 MIN_BODY_PIXELS = 60  # network-foreground crop pixels needed to attempt a fit
@@ -120,6 +121,7 @@ class Reconstructor:
             raise InputError('no_person', f'no person found between {cfg.depth_min:.2f} and '
                              f'{cfg.depth_max:.2f} m')
         persons = []
+        split_done: set[int] = set()  # halves of split candidates are not split again
         x, lab, coords = [], [], []  # network inputs and outputs, per candidate so far
         if len(crops) > cfg.max_persons:
             crops, x, lab, coords = self._rank_candidates(d, crops, timings)
@@ -153,10 +155,15 @@ class Reconstructor:
             timings['correspondence'] += (tf - tc) * 1e3
             fit, vids, tracked = self._fit(pts, vids, stamp_ns, first=not persons)
             if fit.median_residual > cfg.reject_residual_m:
-                # The body model cannot explain this blob: not a person (or a failed fit).
+                # The body model cannot explain this blob: not a person (or a failed fit),
+                # or two people side by side in one blob: then try its two halves last.
                 timings['fit'] += (time.perf_counter() - tf) * 1e3
                 if not persons:
                     self.reset()
+                if id(crop) not in split_done:
+                    halves = split_side_by_side(crop, K)
+                    split_done.update(id(h) for h in halves)
+                    crops.extend(halves)
                 continue
             for _ in range(0 if tracked else cfg.fit.icp_rounds):
                 vids = self._refine_correspondences(pts, vids, fit.vertices)

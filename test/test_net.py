@@ -72,3 +72,31 @@ def test_weights_for_another_body_are_refused(body, tmp_path):
         CorrespondenceNet(body, str(p))
     with pytest.raises(FileNotFoundError, match='train_correspondence'):
         CorrespondenceNet(body, str(tmp_path / 'missing.pt'))
+
+
+def test_split_side_by_side():
+    """Two people touching side by side -> split at the dip between the heads; one person
+    (a single high point, arms out) -> not split."""
+    from smpl_depth_ros.net.preprocess import square_crop, split_side_by_side
+    K = np.array([[500.0, 0, 160], [0, 500, 120], [0, 0, 1]])  # 2 m: 250 px per metre
+    m = np.zeros((240, 320), bool)
+    m[60:240, 60:140] = True     # body 1 (shoulders at row 60), 0.32 m wide
+    m[20:60, 85:115] = True      # head 1: 16 cm above the shoulders
+    m[60:240, 140:220] = True    # body 2, touching body 1
+    m[10:60, 165:195] = True     # head 2
+    crop = square_crop(60, 10, 219, 239, median_depth=2.0, mask=m)
+    assert split_side_by_side(crop, K) == []  # a 16-20 cm dip is less than 20 cm
+    m[0:60, 85:115] = True       # taller heads/necks: the dip is now 24 cm
+    m[0:60, 165:195] = True
+    a, b = split_side_by_side(crop, K)
+    assert a.mask.any(1).sum() > 0 and not (a.mask & b.mask).any()
+    assert (a.mask | b.mask).sum() == m.sum()
+    cut = np.flatnonzero(b.mask.any(0))[0]
+    assert 115 <= cut <= 165  # between the heads
+    assert (a.exclude == b.mask).all() and (b.exclude == a.mask).all()
+    one = np.zeros_like(m)
+    one[40:240, 120:200] = True  # torso
+    one[40:60, 40:280] = True    # arms out
+    one[0:40, 145:175] = True    # head
+    assert split_side_by_side(square_crop(40, 0, 279, 239, median_depth=2.0, mask=one),
+                              K) == []

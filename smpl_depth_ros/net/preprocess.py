@@ -118,6 +118,55 @@ def crop_depth(depth: np.ndarray, crop: Crop, only_blob: bool = True) -> np.ndar
     return np.nan_to_num(out, nan=0.0).astype(np.float32)
 
 
+def split_side_by_side(crop: Crop, K: np.ndarray, min_dip_m: float = 0.2,
+                       min_width_m: float = 0.25) -> list[Crop]:
+    """Two people side by side at the same depth, touching, form one blob: split it where
+    the top of its silhouette dips lowest between two high points (heads), if the dip is at
+    least `min_dip_m` below the lower of the two and each side is at least `min_width_m`
+    wide. Returns the two crops (each excluding the other) or [] when no such dip exists.
+    Used only for candidates whose single-body fit was rejected, so a raised arm beside the
+    head (the same profile) never splits a person whose fit is good."""
+    m = crop.mask
+    if m is None or not m.any():
+        return []
+    H, W = m.shape
+    cols = np.flatnonzero(m.any(0))
+    c0, c1 = int(cols[0]), int(cols[-1]) + 1
+    sub = m[:, c0:c1]
+    top = np.where(sub.any(0), sub.argmax(0), H).astype(np.float64)  # first row per column
+    px_per_m = K[1, 1] / max(crop.median_depth, 0.1)
+    # Smooth over ~5 cm so single ragged columns do not make peaks or dips.
+    k = max(1, int(round(0.05 * K[0, 0] / max(crop.median_depth, 0.1))))
+    top = ndimage.uniform_filter1d(top, 2 * k + 1, mode='nearest')
+    n = len(top)
+    wmin = int(math.ceil(min_width_m * K[0, 0] / max(crop.median_depth, 0.1)))
+    if n < 2 * wmin:
+        return []
+    best, best_c = 0.0, -1
+    peak_l = np.minimum.accumulate(top)            # highest point left of (and at) c
+    peak_r = np.minimum.accumulate(top[::-1])[::-1]
+    for c in range(wmin, n - wmin):
+        dip = (top[c] - max(peak_l[c], peak_r[c])) / px_per_m  # metres below the lower peak
+        if dip > best:
+            best, best_c = dip, c
+    if best < min_dip_m:
+        return []
+    split = c0 + best_c
+    parts = []
+    for lo, hi in ((0, split), (split, W)):
+        pm = np.zeros_like(m)
+        pm[:, lo:hi] = m[:, lo:hi]
+        rr, cc = np.nonzero(pm)
+        if len(rr) == 0:
+            return []
+        parts.append(square_crop(cc.min(), rr.min(), cc.max(), rr.max(),
+                                 median_depth=crop.median_depth, mask=pm))
+    a, b = parts
+    ex = crop.exclude if crop.exclude is not None else np.zeros_like(m)
+    a.exclude, b.exclude = ex | b.mask, ex | a.mask
+    return parts
+
+
 def _pixel_points(rows, cols, z, K) -> np.ndarray:
     """Full-image pixels (row, col) with depth z -> (N, 3) float64 camera-frame points."""
     z = z.astype(np.float64)
