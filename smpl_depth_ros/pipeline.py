@@ -216,7 +216,8 @@ class Reconstructor:
             n = max(int(fg.sum()), 1)
             parts = int((np.bincount(li[fg], minlength=2)[1:] >= 0.02 * n).sum())
             score.append(-n / max(int((xi[1] > 0).sum()), 1) * parts)
-        order = np.argsort(score, kind='stable')
+        # A blob seen through a gap of a nearer candidate goes after every other one.
+        order = np.lexsort((score, [c.behind for c in crops]))
         return ([crops[i] for i in order], [x[i] for i in order], [lab[i] for i in order],
                 [coords[i] for i in order])
 

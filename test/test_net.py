@@ -100,3 +100,18 @@ def test_split_side_by_side():
     one[0:40, 145:175] = True    # head
     assert split_side_by_side(square_crop(40, 0, 279, 239, median_depth=2.0, mask=one),
                               K) == []
+
+
+def test_background_seen_between_the_legs_is_ranked_last():
+    """A synthetic scene: a person-sized blob at 2.5 m whose legs frame a patch of the
+    4 m wall (cut off from the rest of the wall by the person); find_persons returns the
+    person first and flags the patch as `behind`."""
+    from smpl_depth_ros.net.preprocess import find_persons
+    K = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]])
+    d = np.zeros((480, 640), np.float32)
+    d[0:300, 250:390] = 2.5           # the person (~0.7 m wide, cut by the image top)
+    d[180:300, 300:340] = 4.0         # the wall between the legs: nearer the image centre
+    cands = find_persons(d, K, 0.5, 6.0, min_pixels=300, max_persons=3)
+    assert len(cands) == 2
+    assert not cands[0].behind and abs(cands[0].median_depth - 2.5) < 0.05
+    assert cands[1].behind and abs(cands[1].median_depth - 4.0) < 0.05

@@ -16,7 +16,7 @@ pixel counts such as min_pixels scale by 1 / s^2); boxes and masks are full-imag
 4. A candidate's mask: its blob's s x s pixel blocks, grown by ~GROW_PX pixels, where the
    depth is valid and within GROW_DEPTH of the blob's median depth.
 5. Candidates sorted most central first (distance of the blob centroid to the image
-   centre); each gets a square crop (1.15 x the larger bbox side) resampled
+   centre), those seen through a gap of a nearer candidate (`Crop.behind`) last; each gets a square crop (1.15 x the larger bbox side) resampled
    (nearest neighbour) to INPUT_SIZE x INPUT_SIZE.
 6. Network input: channel 0 = (depth - person median) / 0.5 m for valid pixels within
    +-1 m of the median (0 elsewhere), channel 1 = that validity mask.
@@ -54,6 +54,8 @@ class Crop:
         exclude: (H, W) bool pixels of other person candidates at least half this one's
             size: hidden from the network and the fit (neighbours at a similar depth),
             while this person's own self-occluding parts (separate blobs, smaller) stay.
+        behind: the blob lies inside a nearer candidate's box and at least 0.3 m behind
+            it: most likely background seen between its legs or arms; ranked last.
     """
 
     u0: float
@@ -63,6 +65,7 @@ class Crop:
     median_depth: float
     mask: np.ndarray | None = None
     exclude: np.ndarray | None = None  # (H, W) bool: other (larger) persons' blobs
+    behind: bool = False  # seen through a gap of a nearer candidate (see find_persons)
 
     def pixel_grid(self) -> tuple[np.ndarray, np.ndarray]:
         """Full-image (rows, cols) float centres of the crop pixels: (S,), (S,)."""
@@ -281,6 +284,27 @@ def _label_medians(values: np.ndarray, labels: np.ndarray, sizes: np.ndarray) ->
     return medians
 
 
+def _mark_behind(crops: list[Crop], margin: float = 0.05, gap_m: float = 0.3) -> None:
+    """Flag candidates whose blob box lies inside a nearer candidate's box (grown by
+    `margin` of its size) and `gap_m` or more behind it: the wall or floor seen between a
+    person's legs, or between an arm and the torso, is a blob of its own, sometimes of a
+    plausible size, and the network sees the person's outline around it."""
+    boxes = []
+    for c in crops:
+        rows, cols = np.flatnonzero(c.mask.any(1)), np.flatnonzero(c.mask.any(0))
+        boxes.append((rows[0], rows[-1], cols[0], cols[-1]))
+    for i, c in enumerate(crops):
+        r0, r1, c0, c1 = boxes[i]
+        for j, o in enumerate(crops):
+            if j == i or o.median_depth > c.median_depth - gap_m:
+                continue
+            R0, R1, C0, C1 = boxes[j]
+            mr, mc = margin * (R1 - R0 + 1), margin * (C1 - C0 + 1)
+            if r0 >= R0 - mr and r1 <= R1 + mr and c0 >= C0 - mc and c1 <= C1 + mc:
+                c.behind = True
+                break
+
+
 def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: float,
                  min_pixels: int = 400, max_persons: int = 5, seed: int = 0) -> list[Crop]:
     """Person candidates in a depth image, most central first (see the module doc).
@@ -366,7 +390,9 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
         if len(crops) >= 3 * max_persons:
             break
     crops.sort(key=lambda t: t[0])
-    crops = [c for _, c in crops[:max_persons]]
+    crops = [c for _, c in crops]
+    _mark_behind(crops)
+    crops = sorted(crops, key=lambda c: c.behind)[:max_persons]  # stable: central first
     sizes = [int(c.mask.sum()) for c in crops]
     for i, c in enumerate(crops):
         others = [crops[j].mask for j in range(len(crops))
