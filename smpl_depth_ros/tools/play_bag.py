@@ -168,10 +168,13 @@ def main(argv=None) -> int:
                                       'type was selected')
             # Bag time for /clock: t0 (ns) at wall time w0, or held at `hold` (ns).
             clock = dict(t0=None, w0=0.0, hold=None)
+            # Reliable publishers whose last messages must reach late subscribers before exit.
+            acked = list(pubs.values()) if args.qos == 'reliable' else []
             if args.clock > 0:
                 from rosgraph_msgs.msg import Clock
                 clock_pub = node.create_publisher(Clock, '/clock', QoSProfile(
                     depth=1, reliability=ReliabilityPolicy.RELIABLE))
+                acked.append(clock_pub)  # the last message's time must reach subscribers
 
                 def publish_clock(ns=None):
                     if ns is None:
@@ -288,10 +291,9 @@ def main(argv=None) -> int:
                 summary['loops'] += 1
                 if not args.loop:
                     break
-            if args.qos == 'reliable':  # let late subscribers get the last messages
-                from rclpy.duration import Duration
-                for p in pubs.values():
-                    p.wait_for_all_acked(Duration(seconds=2.0))
+            from rclpy.duration import Duration
+            for p in acked:
+                p.wait_for_all_acked(Duration(seconds=2.0))
     except BagReadError as e:
         summary['error'] = str(e)
         print(f'{PROG}: error: {e}', file=sys.stderr)
