@@ -115,3 +115,23 @@ def test_background_seen_between_the_legs_is_ranked_last():
     assert len(cands) == 2
     assert not cands[0].behind and abs(cands[0].median_depth - 2.5) < 0.05
     assert cands[1].behind and abs(cands[1].median_depth - 4.0) < 0.05
+
+
+def test_person_cut_in_two_by_an_arm_is_one_candidate():
+    """An arm held across the body (nearer by 0.4 m) cuts a standing person's blob into an
+    upper and a lower half of similar size: they are one candidate. Two people side by
+    side at the same depth stay two."""
+    K = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]])
+    d = np.zeros((480, 640), np.float32)
+    d[60:420, 100:180] = 3.0          # person 1: ~2 m tall, ~0.45 m wide at 3 m
+    d[220:232, 90:190] = 2.6          # its forearm across the waist, 40 cm nearer
+    d[60:420, 400:480] = 3.0          # person 2, alone, same depth
+    d[60:420, 490:570] = 3.05         # person 3, beside person 2 (a 10 cm gap)
+    cands = find_persons(d, K, 0.5, 6.0, min_pixels=300, max_persons=6)
+    people = sorted((c for c in cands if c.mask.sum() > 10000), key=lambda c: c.u0)
+    assert len(people) == 3, [int(c.mask.sum()) for c in cands]
+    rows = np.flatnonzero(people[0].mask.any(1))
+    assert rows[0] <= 62 and rows[-1] >= 417  # both halves of person 1 in one mask
+    for p in people[1:]:
+        cols = np.flatnonzero(p.mask.any(0))
+        assert cols[-1] - cols[0] < 100  # side by side: not merged

@@ -305,6 +305,45 @@ def _mark_behind(crops: list[Crop], margin: float = 0.05, gap_m: float = 0.3) ->
                 break
 
 
+def _stacked(a: tuple[slice, slice], b: tuple[slice, slice], min_overlap: float = 0.2
+             ) -> bool:
+    """Two component boxes (row, column slices) one above the other: their centres are
+    further apart in rows than in columns, and their columns overlap by at least
+    `min_overlap` of the narrower one."""
+    def centre(x):
+        return (x.start + x.stop) / 2
+    cols = min(a[1].stop, b[1].stop) - max(a[1].start, b[1].start)
+    narrow = min(a[1].stop - a[1].start, b[1].stop - b[1].start)
+    return (abs(centre(a[0]) - centre(b[0])) > abs(centre(a[1]) - centre(b[1]))
+            and cols >= min_overlap * narrow)
+
+
+def _group_blob(group, lab, slices, d, n, grow, s, K):
+    """The decimated blob of components `group`, when it has a person's 3D size
+    (0.4-2.6 m tall, < 1.6 m wide; from at most 2000 of its pixels).
+
+    Returns None, or (blob over its box, rows, cols, depths of its pixels (decimated image),
+    box r0, r1, c0, c1 with room for growing the mask)."""
+    # The group's bounding box (merged components may reach out of the search box).
+    r0 = max(min(slices[j - 1][0].start for j in group) - grow, 0)
+    r1 = max(slices[j - 1][0].stop for j in group) + grow
+    c0 = max(min(slices[j - 1][1].start for j in group) - grow, 0)
+    c1 = max(slices[j - 1][1].stop for j in group) + grow
+    in_group = np.zeros(n + 1, bool)
+    in_group[group] = True
+    blob = in_group[lab[r0:r1, c0:c1]]
+    rr, cc = np.nonzero(blob)
+    zz = d[r0:r1, c0:c1][rr, cc]
+    rr, cc = rr + r0, cc + c0
+    step = -(-len(zz) // 2000)
+    lo, hi = np.percentile(_pixel_points(rr[::step] * s, cc[::step] * s, zz[::step], K),
+                           (2, 98), axis=0)
+    height, width = hi[1] - lo[1], max(hi[0] - lo[0], hi[2] - lo[2])
+    if not (0.4 <= height <= 2.6 and width <= 1.6):
+        return None
+    return blob, rr, cc, zz, r0, r1, c0, c1
+
+
 def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: float,
                  min_pixels: int = 400, max_persons: int = 5, seed: int = 0) -> list[Crop]:
     """Person candidates in a depth image, most central first (see the module doc).
@@ -351,27 +390,21 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
         box = lab[max(rows.start - pad_r, 0):rows.stop + pad_r,
                   max(cols.start - pad_c, 0):cols.stop + pad_c]
         ids = np.flatnonzero(np.bincount(box.ravel(), minlength=n + 1))
-        near = ids[(ids > 0) & (ids != k) & ~used[ids] & (sizes[ids] < 0.6 * sizes[k])
-                   & (np.abs(medians[ids] - medians[k]) < 0.3)]
-        group = [k, *near]
-        # The group's bounding box (merged components may reach out of `box`), with room
-        # for growing the mask.
-        r0 = max(min(slices[j - 1][0].start for j in group) - grow, 0)
-        r1 = max(slices[j - 1][0].stop for j in group) + grow
-        c0 = max(min(slices[j - 1][1].start for j in group) - grow, 0)
-        c1 = max(slices[j - 1][1].stop for j in group) + grow
-        in_group = np.zeros(n + 1, bool)
-        in_group[group] = True
-        blob = in_group[lab[r0:r1, c0:c1]]
-        rr, cc = np.nonzero(blob)
-        zz = d[r0:r1, c0:c1][rr, cc]
-        rr, cc = rr + r0, cc + c0
-        step = -(-len(zz) // 2000)  # the 3D size from at most 2000 of the blob's pixels
-        lo, hi = np.percentile(_pixel_points(rr[::step] * s, cc[::step] * s, zz[::step], K),
-                               (2, 98), axis=0)
-        height, width = hi[1] - lo[1], max(hi[0] - lo[0], hi[2] - lo[2])
-        if not (0.4 <= height <= 2.6 and width <= 1.6):
+        ids = ids[(ids > 0) & (ids != k) & ~used[ids]
+                  & (np.abs(medians[ids] - medians[k]) < 0.3)]
+        small = ids[sizes[ids] < 0.6 * sizes[k]]
+        # An arm across the body cuts a person into an upper and a lower half of similar
+        # size: a component as big, stacked above or below this one, is merged too when
+        # the whole is still person-sized; side by side, it is another person.
+        stacked = [j for j in ids if sizes[j] >= 0.6 * sizes[k] and _stacked(slices[k - 1],
+                                                                            slices[j - 1])]
+        for group in ([k, *small, *stacked], [k, *small]) if stacked else ([k, *small],):
+            fit = _group_blob(group, lab, slices, d, n, grow, s, K)
+            if fit is not None:
+                break
+        if fit is None:
             continue
+        blob, rr, cc, zz, r0, r1, c0, c1 = fit
         used[group] = True
         med = float(np.median(zz))
         # Full-image mask: the blob's s x s blocks, grown back over the edge pixels, where
