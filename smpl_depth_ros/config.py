@@ -29,6 +29,8 @@ class FitConfig:
     lost_residual_m: float = 0.06     # median residual above which the track is lost
     icp_rounds: int = 1               # part-constrained nearest-vertex refinements after
                                       # the Eq. 2 fit (0 = the paper's single fit)
+    tracking_icp_rounds: int = 0      # the same refinement on tracked frames (after their
+                                      # warm fit, on this frame's mesh)
     segment_init: bool = True         # cold fits: per-segment closed-form rotations
     flip_restart: bool = True         # cold fits: retry turned 180 deg when the fit is poor
     flip_residual_m: float = 0.06     # median residual that triggers that retry

@@ -165,7 +165,8 @@ class Reconstructor:
                     split_done.update(id(h) for h in halves)
                     crops.extend(halves)
                 continue
-            for _ in range(0 if tracked else cfg.fit.icp_rounds):
+            # ICP inside the predicted parts on this frame's fitted mesh, then a refit.
+            for _ in range(cfg.fit.tracking_icp_rounds if tracked else cfg.fit.icp_rounds):
                 vids = self._refine_correspondences(pts, vids, fit.vertices)
                 fit = self.fitter.fit(pts, vids, init=fit.params, fix_shape=False,
                                       iterations=cfg.fit.tracking_iterations)
@@ -238,7 +239,8 @@ class Reconstructor:
     def _fit(self, pts, vids, stamp_ns, first: bool):
         """Fit one person: warm-started from the previous frame while the track holds
         (refining the correspondences on the previous, moved mesh was measured to lock
-        onto wrong poses), else cold.
+        onto wrong poses; `process` refines them on this frame's warm fit instead), else
+        cold.
 
         Returns (FitResult, correspondences used, tracked).
         """

@@ -81,6 +81,8 @@ _CORE_DOC = {
     'fit.lost_residual_m': 'fitting: median residual above which the track is lost (m)',
     'fit.icp_rounds': 'fitting: part-constrained nearest-vertex refinements after the '
                       'correspondence fit (0 = none)',
+    'fit.tracking_icp_rounds': 'fitting: the same refinements on tracked frames (on their '
+                               'warm fit; 0 = none, faster)',
     'fit.segment_init': 'fitting: cold fits start from per-segment closed-form rotations',
     'fit.flip_restart': 'fitting: cold fits retry turned 180 degrees when the fit is poor',
     'fit.flip_residual_m': 'fitting: median residual that triggers that retry (m)',
@@ -122,7 +124,7 @@ _INT_RANGES = {
     'max_image_pixels': (1, 1 << 30), 'fit.iterations': (0, 10_000),
     'fit.tracking_iterations': (0, 10_000), 'fit.lbfgs_iterations': (0, 10_000),
     'fit.max_points': (1, 10_000_000), 'fit.icp_rounds': (0, 100),
-    'fit.min_cell_points': (1, 1_000_000),
+    'fit.min_cell_points': (1, 1_000_000), 'fit.tracking_icp_rounds': (0, 100),
 }
 
 
