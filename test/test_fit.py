@@ -15,7 +15,7 @@ def body():
     return AnnyBody()
 
 
-def _scene(body, seed):
+def _scene(body, seed, with_params=False):
     rng = np.random.default_rng(seed)
     ps = PoseSampler(body)
     pose = ps.sample(rng, 1)
@@ -30,6 +30,8 @@ def _scene(body, seed):
     n = np.asarray(__import__('trimesh').Trimesh(V, body.faces_numpy(), process=False)
                    .vertex_normals)
     front = np.flatnonzero((n * V).sum(1) < 0)
+    if with_params:
+        return rng, V, out.joints[0].numpy(), front, (go, tr)
     return rng, V, out.joints[0].numpy(), front
 
 
@@ -49,10 +51,15 @@ def test_backproject_roundtrip():
 
 @pytest.mark.parametrize('seed', [0, 1, 2])
 def test_recovers_known_parameters(body, seed):
-    rng, V, _, front = _scene(body, seed)
+    from scipy.spatial.transform import Rotation
+    rng, V, J, front, (go, tr) = _scene(body, seed, with_params=True)
     fit = Fitter(body)
     r = fit.fit(V[front], front)
-    assert _pve(r, V) < 0.008, _pve(r, V)  # all 1,229 vertices, incl. the unseen back
+    assert _pve(r, V) < 0.003, _pve(r, V)  # all 1,229 vertices, incl. the unseen back
+    assert np.linalg.norm(r.joints - J, axis=1).mean() < 0.003
+    assert np.linalg.norm(r.params.transl - tr) < 0.005
+    turn = Rotation.from_rotvec(r.params.global_orient).inv() * Rotation.from_rotvec(go)
+    assert np.degrees(turn.magnitude()) < 5.0
     assert r.median_residual < 0.002 and np.isfinite(r.energy)
     noisy = V[front] + rng.normal(0, 0.005, (len(front), 3)).astype(np.float32)
     assert _pve(fit.fit(noisy, front), V) < 0.015
@@ -72,6 +79,33 @@ def test_objective_gradients(body):
         return objective.energy(b64, dict(zip(names, args)), pts, ids, cfg)['total']
     leaves = [p0[k].clone().requires_grad_(True) for k in names]
     assert torch.autograd.gradcheck(f, leaves)
+
+
+def test_solver_jacobian_matches_finite_differences(body):
+    """The fast solver's analytic LBS Jacobian (rotation increments of every joint,
+    translation, shape) against central differences of its own residuals."""
+    from smpl_depth_ros.fit.fitter import _rodrigues
+    rng, V, _, front = _scene(body, 5)
+    fit = Fitter(body)
+    ids = front[::15]
+    pts = V[ids].astype(np.float64) + 0.01
+    nj = len(fit.rig.jb)
+    rot = _rodrigues(rng.normal(0, 0.3, (nj, 3)))
+    transl = np.array([0.1, -0.2, 3.0])
+    shape = fit.rig.shape_mean + rng.uniform(-0.05, 0.05, len(fit.rig.shape_mean))
+    prob = fit._problem(shape, ids, False)
+    _, _, G, x, WQ = fit._evaluate((rot, transl, shape), pts, ids, False, prob)
+    J = fit._jacobian((rot, transl, shape), prob, G, x, WQ, free_shape=True)
+    assert J.shape == (len(ids), 3, 3 * nj + 3 + len(shape))
+
+    def residuals(d):
+        state = (_rodrigues(d[:3 * nj].reshape(nj, 3)) @ rot, transl + d[3 * nj:3 * nj + 3],
+                 shape + d[3 * nj + 3:])
+        return fit._evaluate(state, pts, ids, False, prob)[1]
+    h = 1e-6
+    num = np.stack([(residuals(h * e) - residuals(-h * e)) / (2 * h)
+                    for e in np.eye(J.shape[2])], -1)
+    assert np.abs(J - num).max() < 1e-6 * max(np.abs(num).max(), 1.0), np.abs(J - num).max()
 
 
 def test_robust_to_wrong_correspondences(body):

@@ -135,3 +135,22 @@ def test_person_cut_in_two_by_an_arm_is_one_candidate():
     for p in people[1:]:
         cols = np.flatnonzero(p.mask.any(0))
         assert cols[-1] - cols[0] < 100  # side by side: not merged
+
+
+def test_training_crops_see_close_bodies_as_the_sensor_does(body):
+    """A body taller than the image (close range): with truncation the training crop is
+    cut around its part inside the image, as at run time, and the crop pixels outside
+    the sensor image are empty; without, around the whole projected body."""
+    from smpl_depth_ros.net.data import SampleConfig, SampleMaker, training_crop
+    uv = np.array([[250.0, -300.0], [390.0, 700.0]])  # 1000 px tall on a 640x480 image
+    for truncate, rows in ((1.0, (0, 480)), (0.0, (-300, 700))):
+        cfg = SampleConfig(truncate=truncate, crop_jitter=0.0, crop_scale=(1.0, 1.0))
+        crop, truncated = training_crop(uv, 640, 480, cfg, np.random.default_rng(0))
+        assert truncated == (truncate > 0)
+        centre = crop.v0 + crop.scale * crop.size / 2
+        assert abs(centre - sum(rows) / 2) < 2, (centre, rows)
+        assert abs(crop.scale * crop.size - 1.15 * (rows[1] - rows[0])) < 3
+    maker = SampleMaker(body, SampleConfig(truncate=1.0, depth_range=(1.0, 1.1),
+                                           background=0.0))
+    x, labels, coords, cm = maker(np.random.default_rng(1))  # the truncated path runs
+    assert labels.max() > 0 and x[1].sum() > 500 and not (cm & (x[1] == 0)).any()

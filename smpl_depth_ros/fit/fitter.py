@@ -522,6 +522,38 @@ class Fitter:
               + cfg.lambda_shape * (((shape - rig.shape_mean) / rig.shape_std) ** 2).sum())
         return float(en), float(data), aa, viol
 
+    def _jacobian(self, state, prob, G, x, WQ, free_shape: bool) -> np.ndarray:
+        """Jacobian of the residuals v + t - p at `state` (G, x, WQ from `_evaluate`):
+        (N, 3, n) over the rotation increments R_j <- exp(delta_j) R_j of every joint
+        (root first), the translation, and with `free_shape` the shape (through the local
+        linearisation `prob`). Pose-dependent offsets (SMPL pose blend shapes) are left out.
+        """
+        rig = self.rig
+        P = len(rig.jb) - 1
+        S = len(rig.shape_mean)
+        n_rot = 3 * (P + 1)
+        n = n_rot + 3 + (S if free_shape else 0)
+        _, _, A, _, B, W = prob
+        N = W.shape[0]
+        # Rotation columns: d v / d delta_j = (Gp_j delta) x u_j,
+        # u_j = sum over bones moved by joint j of W (G_b r + t_b - x_j).
+        U = (rig.desc @ WQ.transpose(1, 0, 2).reshape(W.shape[1], -1)).reshape(
+            P + 1, N, 3) - (W @ rig.desc.T).T[:, :, None] * x[rig.jb][:, None, :]
+        Gp = np.where(rig.jparent[:, None, None] >= 0, G[rig.jparent], np.eye(3))
+        # cross(Gp_j e_a, u)_c = sum_d T[j, d, (c, a)] u_d.
+        T = np.einsum('cbd,jba->jdca', _EPS, Gp).reshape(P + 1, 3, 9)
+        Jr = (U @ T).reshape(P + 1, N, 3, 3).transpose(1, 2, 0, 3).reshape(N, 3, n_rot)
+        Jd = np.empty((N, 3, n))
+        Jd[:, :, :n_rot] = Jr
+        Jd[:, :, n_rot:n_rot + 3] = np.eye(3)
+        if free_shape:
+            # d v / d s = sum_b W (G_b (A - B_b) + dx_b), dx from tangent FK.
+            dx = rig.fk_tangent(G, B)
+            Cb = dx - G @ B  # (Jb, 3, S)
+            M = (W @ G.reshape(len(G), 9)).reshape(N, 3, 3)
+            Jd[:, :, n_rot + 3:] = M @ A + (W @ Cb.reshape(len(G), -1)).reshape(N, 3, S)
+        return Jd
+
     def _levenberg_marquardt(self, state, pts, ids, wts, joints: bool, iterations: int,
                              fix_shape: bool, sigma_start: float | None = None):
         """IRLS / Levenberg-Marquardt on the robust objective.
@@ -572,29 +604,12 @@ class Fitter:
                 mu = max(mu / 3, 1e-6)
                 prev = (en, state, (sq, e, G, x, WQ), aa, viol)
             rot, transl, shape = state
-            s0, _, A, _, B, W = prob
             # IRLS weights of the Geman-McClure term.
             om = objective.gm_weights(sq, sigma) * cfg.lambda_data / wsum
             if wts is not None:
                 om = om * wts
             sw = np.sqrt(om)
-            # Rotation columns: d v / d delta_j = (Gp_j delta) x u_j,
-            # u_j = sum over bones moved by joint j of W (G_b r + t_b - x_j).
-            U = (rig.desc @ WQ.transpose(1, 0, 2).reshape(W.shape[1], -1)).reshape(
-                P + 1, N, 3) - (W @ rig.desc.T).T[:, :, None] * x[rig.jb][:, None, :]
-            Gp = np.where(rig.jparent[:, None, None] >= 0, G[rig.jparent], np.eye(3))
-            # cross(Gp_j e_a, u)_c = sum_d T[j, d, (c, a)] u_d.
-            T = np.einsum('cbd,jba->jdca', _EPS, Gp).reshape(P + 1, 3, 9)
-            Jr = (U @ T).reshape(P + 1, N, 3, 3).transpose(1, 2, 0, 3).reshape(N, 3, n_rot)
-            Jd = np.empty((N, 3, n))
-            Jd[:, :, :n_rot] = Jr
-            Jd[:, :, n_rot:n_rot + 3] = np.eye(3)
-            if free_shape:
-                # d v / d s = sum_b W (G_b (A - B_b) + dx_b), dx from tangent FK.
-                dx = rig.fk_tangent(G, B)
-                Cb = dx - G @ B  # (Jb, 3, S)
-                M = (W @ G.reshape(len(G), 9)).reshape(N, 3, 3)
-                Jd[:, :, n_rot + 3:] = M @ A + (W @ Cb.reshape(len(G), -1)).reshape(N, 3, S)
+            Jd = self._jacobian(state, prob, G, x, WQ, free_shape)
             Jf = (Jd * sw[:, None, None]).reshape(-1, n)
             H = Jf.T @ Jf
             g = Jf.T @ (e * sw[:, None]).reshape(-1)

@@ -32,6 +32,9 @@ class SampleConfig:
     depth_range: tuple[float, float] = (1.0, 5.0)
     crop_jitter: float = 0.08        # crop centre jitter (fraction of the side)
     crop_scale: tuple[float, float] = (0.95, 1.3)  # crop side / (1.15 x bbox side)
+    truncate: float = 0.5            # probability of seeing the body as the sensor does:
+                                     # the crop around its part inside the sensor image,
+                                     # pixels outside that image empty (close range)
 
 
 def crop_noise_params(scale: float) -> NoiseParams:
@@ -43,6 +46,34 @@ def crop_noise_params(scale: float) -> NoiseParams:
         lateral_band_px=int(round(2 * k)), edge_drop_prob=0.5 * k,
         edge_erode_px=int(2 * k), hole_radius_px=(1, max(1, int(round(3 * k)))),
         holes_per_frame=4.0 * k * k)
+
+
+def training_crop(uv: np.ndarray, width: int, height: int, cfg: SampleConfig,
+                  rng: np.random.Generator):
+    """The square crop of a training sample around the body's projected vertices `uv`
+    (V, 2) on a width x height sensor, jittered and scaled as cfg says.
+
+    At run time a crop is cut around what the sensor sees of the body: at close range,
+    only its part inside the image. With probability cfg.truncate (when the body leaves
+    the image and a quarter of its box stays in it) the crop is built that way, and the
+    caller empties the crop pixels outside the sensor image.
+
+    Returns (Crop, truncated).
+    """
+    u0, v0 = uv.min(0)
+    u1, v1 = uv.max(0)
+    cu0, cv0 = max(u0, 0.0), max(v0, 0.0)
+    cu1, cv1 = min(u1, width - 1.0), min(v1, height - 1.0)
+    truncated = bool(rng.random() < cfg.truncate and (cu0, cv0, cu1, cv1) != (u0, v0, u1, v1)
+                     and (cu1 - cu0) * (cv1 - cv0) >= 0.25 * (u1 - u0) * (v1 - v0))
+    if truncated:
+        u0, v0, u1, v1 = cu0, cv0, cu1, cv1
+    side = max(u1 - u0, v1 - v0)
+    s = rng.uniform(*cfg.crop_scale)
+    jit = rng.uniform(-cfg.crop_jitter, cfg.crop_jitter, 2) * side
+    cu, cv = (u0 + u1) / 2 + jit[0], (v0 + v1) / 2 + jit[1]
+    half = side * s / 2
+    return square_crop(cu - half, cv - half, cu + half, cv + half, size=cfg.size), truncated
 
 
 class SampleMaker:
@@ -77,14 +108,7 @@ class SampleMaker:
                        torch.as_tensor(tr, dtype=body.dtype)[None])
         V = out.vertices[0].cpu().numpy().astype(np.float64)
         uv = V[:, :2] / V[:, 2:3] * [cam.fx, cam.fy] + [cam.cx, cam.cy]
-        u0, v0 = uv.min(0)
-        u1, v1 = uv.max(0)
-        side = max(u1 - u0, v1 - v0)
-        s = rng.uniform(*cfg.crop_scale)
-        jit = rng.uniform(-cfg.crop_jitter, cfg.crop_jitter, 2) * side
-        cu, cv = (u0 + u1) / 2 + jit[0], (v0 + v1) / 2 + jit[1]
-        half = side * s / 2
-        crop = square_crop(cu - half, cv - half, cu + half, cv + half, size=cfg.size)
+        crop, truncated = training_crop(uv, cam.width, cam.height, cfg, rng)
         Kc = crop.crop_K(cam.K)
         ccam = Camera(width=cfg.size, height=cfg.size, fx=Kc[0, 0], fy=Kc[1, 1],
                       cx=Kc[0, 2], cy=Kc[1, 2], name=cam.name + '_crop',
@@ -99,6 +123,11 @@ class SampleMaker:
             depth = nr.depth
             labels = nr.take(labels, 0)
             vids = nr.take(vids, -1)
+        if truncated:
+            outside = ~crop.sample_indices((cam.height, cam.width))[2]
+            depth = np.where(outside, 0.0, depth).astype(depth.dtype)
+            labels = np.where(outside, 0, labels).astype(labels.dtype)
+            vids = np.where(outside, -1, vids).astype(vids.dtype)
         body_px = (labels > 0) & (depth > 0)
         med = float(np.median(depth[body_px])) if body_px.any() else z
         med += rng.normal(0, 0.03)  # the run-time median comes from a blob, not labels

@@ -113,6 +113,8 @@ def main(argv=None):
     ap.add_argument('--ckpt-every', type=int, default=500)
     ap.add_argument('--ckpt', default='', help='checkpoint path (default <out>.ckpt)')
     ap.add_argument('--resume', action='store_true', help='continue from the checkpoint')
+    ap.add_argument('--init', default='',
+                    help='start from these weights (fine-tuning; e.g. the shipped ones)')
     ap.add_argument('--max-minutes', type=float, default=0.0,
                     help='stop (and save) after this many minutes (0: no limit)')
     args = ap.parse_args(argv)
@@ -126,6 +128,9 @@ def main(argv=None):
     torch.manual_seed(args.seed)
     net = build_network(args.kind).to(device)
     opt = torch.optim.AdamW(net.parameters(), lr=args.lr, weight_decay=1e-4)
+    if args.init:
+        sd = torch.load(args.init, map_location='cpu', weights_only=False)['state_dict']
+        net.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in sd.items()})
     ckpt_path = args.ckpt or args.out + '.ckpt'
     log_path = os.path.splitext(args.out)[0] + '.log.json'
     step, log = 0, []
