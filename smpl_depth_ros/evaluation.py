@@ -7,8 +7,11 @@ import os
 import numpy as np
 
 
-def write_json(out: dict, path: str | None) -> None:
-    """Write `out` to `path` (if given) and print it as one JSON line (the tools' output)."""
+def write_json(out: dict, path: str | None, command: str | None = None) -> None:
+    """Write `out` to `path` (if given) and print it as one JSON line (the tools' output);
+    `command`, the command line that produced the figures, is recorded with them."""
+    if command:
+        out = dict(out, command=command)
     if path:
         os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
         with open(path, 'w') as fh:

@@ -47,6 +47,24 @@ def test_tracking_warm_starts_consecutive_frames(rec):
     assert np.linalg.norm(a.persons[0].vertices - b.persons[0].vertices, axis=1).mean() < 0.03
 
 
+def test_tracking_resets_when_the_person_leaves_or_the_track_is_lost(rec):
+    f, g = _frame(rec, 3), _frame(rec, 9)
+    rec.reset()
+    assert not rec.process(f['depth'], f['K'], stamp_ns=1_000_000_000).persons[0].tracked
+    # Nobody in the next frame: the track is dropped ...
+    with pytest.raises(InputError):
+        rec.process(np.where(f['depth'] > 0, 9.5, 0).astype(np.float32), f['K'],
+                    stamp_ns=1_033_000_000)
+    # ... so the person coming back is fitted cold, and tracked from then on.
+    assert not rec.process(f['depth'], f['K'], stamp_ns=1_066_000_000).persons[0].tracked
+    assert rec.process(f['depth'], f['K'], stamp_ns=1_100_000_000).persons[0].tracked
+    # Another body in another pose 33 ms later: the warm fit's residual says the track is
+    # lost; the frame is refitted cold and the result is close to that body.
+    r = rec.process(g['depth'], g['K'], stamp_ns=1_133_000_000).persons[0]
+    assert not r.tracked
+    assert np.linalg.norm(r.vertices - g['vertices'], axis=1).mean() < 0.1
+
+
 @pytest.mark.parametrize('make,reason', [
     (lambda f: (np.zeros_like(f['depth']), f['K']), 'no_valid_depth'),
     (lambda f: (np.full_like(f['depth'], np.nan), f['K']), 'no_valid_depth'),

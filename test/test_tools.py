@@ -21,7 +21,7 @@ def test_evaluate_writes_table_ii_json(bag, tmp_path):
     for key in ('pve_mm', 'pa_pve_mm', 'mpjpe_mm', 'miou', 'corr_err_cm_median',
                 'net_ms_median', 'fit_ms_median', 'frames'):
         assert key in res, key
-    assert res['frames'] == 3
+    assert res['frames'] == 3 and res['command'].startswith(f'evaluate {bag} --json')
     assert set(res['ablation']) == {'gt_joints+fit', 'single_unet+fit', 'double_unet+fit',
                                     'gt_corr+fit'}
     assert res['ablation']['gt_corr+fit']['pve_mm'] < 60
@@ -38,3 +38,4 @@ def test_benchmark_fit_writes_json(bag, tmp_path):
                     'frames'):
             assert key in res[row], (row, key)
     assert res['fast_cold']['pve_mm'] < 60
+    assert res['command'] == f'benchmark fit {bag} --frames 2 --lbfgs-frames 1 --json {out}'

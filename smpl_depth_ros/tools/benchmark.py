@@ -265,9 +265,10 @@ def main(argv=None) -> int:
     nd.add_argument('--rate', type=float, default=30.0)
     nd.add_argument('--json', default=None)
     args = ap.parse_args(argv)
+    command = ' '.join(['benchmark', *(sys.argv[1:] if argv is None else argv)])
     if args.cmd in ('net', 'node'):
         out = bench_net(args) if args.cmd == 'net' else bench_node(args)
-        write_json(out, args.json)
+        write_json(out, args.json, command)
         return 0
     out = bench_fit(args)
     rows = [v for v in out.values() if isinstance(v, dict)]
@@ -277,7 +278,7 @@ def main(argv=None) -> int:
         print(f'{r["method"]:26s} {r["pve_mm"]:7.1f} {r["pa_pve_mm"]:7.1f} {r["mpjpe_mm"]:7.1f} '
               f'{r["fit_ms_median"]:7.1f} {r["fit_ms_p95"]:7.1f} {r["iterations_mean"]:6.1f} '
               f'{r["frames"]:6d}')
-    write_json(out, args.json)
+    write_json(out, args.json, command)
     return 0
 
 

@@ -164,7 +164,7 @@ def main(argv=None) -> int:
               f'{v.get("miou", float("nan")):6.3f} {v.get("corr_err_cm_median", float("nan")):8.2f} '
               f'{v.get("net_ms_median", float("nan")):7.1f} {v["fit_ms_median"]:7.1f} '
               f'{v["failures"]:5d}')
-    write_json(out, args.json)
+    write_json(out, args.json, ' '.join(['evaluate', *(sys.argv[1:] if argv is None else argv)]))
     return 0
 
 
