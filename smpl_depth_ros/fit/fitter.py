@@ -71,8 +71,10 @@ class FitResult:
         vertices: (V, 3) full mesh, camera frame.
         joints: (J, 3).
         residuals: (N,) distance of every input point to its corresponding vertex (m).
-        data_term: robust data-term value (mean Geman-McClure, m^2).
-        energy: total objective.
+        data_term: robust data-term value (weighted mean Geman-McClure, m^2) over the
+            solver's targets: the per-vertex aggregates of the points (see
+            `aggregate_by_vertex`), not the raw points.
+        energy: total objective on the same targets.
         iterations: solver iterations run.
         time_ms: wall time of the fit.
         solver: 'fast' | 'lbfgs'; warm: warm-started.
