@@ -118,12 +118,13 @@ def test_background_seen_between_the_legs_is_ranked_last():
 
 
 def test_person_cut_in_two_by_an_arm_is_one_candidate():
-    """An arm held across the body (nearer by 0.4 m) cuts a standing person's blob into an
+    """An arm held across the body (nearer by 0.4 m) cuts a person bent forward into an
     upper and a lower half of similar size: they are one candidate. Two people side by
     side at the same depth stay two."""
     K = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]])
     d = np.zeros((480, 640), np.float32)
     d[60:420, 100:180] = 3.0          # person 1: ~2 m tall, ~0.45 m wide at 3 m
+    d[232:420, 100:180] = 3.4         # ... bent forward: its legs 40 cm further
     d[220:232, 90:190] = 2.6          # its forearm across the waist, 40 cm nearer
     d[60:420, 400:480] = 3.0          # person 2, alone, same depth
     d[60:420, 490:570] = 3.05         # person 3, beside person 2 (a 10 cm gap)

@@ -390,14 +390,15 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
         box = lab[max(rows.start - pad_r, 0):rows.stop + pad_r,
                   max(cols.start - pad_c, 0):cols.stop + pad_c]
         ids = np.flatnonzero(np.bincount(box.ravel(), minlength=n + 1))
-        ids = ids[(ids > 0) & (ids != k) & ~used[ids]
-                  & (np.abs(medians[ids] - medians[k]) < 0.3)]
-        small = ids[sizes[ids] < 0.6 * sizes[k]]
+        ids = ids[(ids > 0) & (ids != k) & ~used[ids]]
+        gap = np.abs(medians[ids] - medians[k])
+        small = ids[(sizes[ids] < 0.6 * sizes[k]) & (gap < 0.3)]
         # An arm across the body cuts a person into an upper and a lower half of similar
-        # size: a component as big, stacked above or below this one, is merged too when
-        # the whole is still person-sized; side by side, it is another person.
-        stacked = [j for j in ids if sizes[j] >= 0.6 * sizes[k] and _stacked(slices[k - 1],
-                                                                            slices[j - 1])]
+        # size (bent forward, 0.3-0.5 m apart in depth): a component as big, stacked above
+        # or below this one, is merged too when the whole is still person-sized; side by
+        # side, it is another person.
+        stacked = [j for j, g in zip(ids, gap) if sizes[j] >= 0.6 * sizes[k] and g < 0.5
+                   and _stacked(slices[k - 1], slices[j - 1])]
         for group in ([k, *small, *stacked], [k, *small]) if stacked else ([k, *small],):
             fit = _group_blob(group, lab, slices, d, n, grow, s, K)
             if fit is not None:
