@@ -155,3 +155,17 @@ def test_training_crops_see_close_bodies_as_the_sensor_does(body):
                                            background=0.0))
     x, labels, coords, cm = maker(np.random.default_rng(1))  # the truncated path runs
     assert labels.max() > 0 and x[1].sum() > 500 and not (cm & (x[1] == 0)).any()
+
+
+def test_person_close_to_a_wall_is_peeled_off_it():
+    """A person 8 cm in front of a wall at 4 m (less than the depth-jump threshold there)
+    is one blob with the wall, too big for a person: the wall plane is peeled off it and
+    the person found."""
+    K = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]])
+    d = np.full((480, 640), 4.08, np.float32)   # the wall fills the view
+    d[150:400, 300:340] = 4.0                  # ~1.9 m tall, ~0.3 m wide
+    cands = find_persons(d, K, 0.5, 6.0, min_pixels=300, max_persons=3)
+    assert len(cands) == 1
+    rows, cols = np.flatnonzero(cands[0].mask.any(1)), np.flatnonzero(cands[0].mask.any(0))
+    assert abs(cands[0].median_depth - 4.0) < 0.02
+    assert rows[0] >= 145 and rows[-1] <= 405 and cols[0] >= 295 and cols[-1] <= 345

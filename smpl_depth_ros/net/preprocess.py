@@ -11,8 +11,11 @@ pixel counts such as min_pixels scale by 1 / s^2); boxes and masks are full-imag
    and a table top).
 3. Connected components of what remains, with edges cut at depth jumps > 6 cm between
    neighbouring pixels; smaller components at a similar depth near a component's box are
-   merged into it (self-occlusion); a blob is a person candidate when it has enough
-   pixels and a plausible 3D size (0.4-2.6 m tall, < 1.6 m wide).
+   merged into it (self-occlusion), and so is a component of similar size stacked above
+   or below it (an arm across the waist); a blob is a person candidate when it has enough
+   pixels and a plausible 3D size (0.4-2.6 m tall, < 1.6 m wide). When no blob is, the
+   planes of any orientation are peeled off the large ones and step 3 runs again (a
+   person close to a wall).
 4. A candidate's mask: its blob's s x s pixel blocks, grown by ~GROW_PX pixels, where the
    depth is valid and within GROW_DEPTH of the blob's median depth.
 5. Candidates sorted most central first (distance of the blob centroid to the image
@@ -344,39 +347,21 @@ def _group_blob(group, lab, slices, d, n, grow, s, K):
     return blob, rr, cc, zz, r0, r1, c0, c1
 
 
-def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: float,
-                 min_pixels: int = 400, max_persons: int = 5, seed: int = 0) -> list[Crop]:
-    """Person candidates in a depth image, most central first (see the module doc).
+def _candidates(fg, depth, d, K, s, min_px, max_persons, depth_min, depth_max):
+    """Person candidates among the connected components of `fg` (decimated image `d`).
 
-    Args:
-        depth: (H, W) float32 metres (0/NaN invalid).
-        K: (3, 3) intrinsics.
-        min_pixels: smallest candidate blob, in full-image pixels.
-
-    Returns:
-        Crops (with `mask`, and `exclude` where a neighbour is big enough), at most
-        max_persons.
+    Returns ([(distance to the image centre, Crop)], component labels, labels of the
+    largest components that were not person-sized (at least 4 x min_px)).
     """
     H, W = depth.shape
-    s = max(1, round(W / DETECT_WIDTH))
-    d = np.nan_to_num(depth[::s, ::s], nan=0.0)  # pixel (r, c) is full-image (r * s, c * s)
-    min_px = min_pixels / s ** 2
-    valid = (d >= depth_min) & (d <= depth_max)
-    r, c = np.nonzero(valid)
-    if len(r) < min_px:
-        return []
-    keep = _remove_planes(_pixel_points(r * s, c * s, d[r, c], K),
-                          np.random.default_rng(seed))
-    fg = np.zeros_like(valid)
-    fg[valid] = keep
-    lab, n = ndimage.label(fg & ~_depth_edges(depth, s))
+    lab, n = ndimage.label(fg)
     if n == 0:
-        return []
+        return [], lab, []
     sizes = np.bincount(lab.ravel(), minlength=n + 1)  # by label; [0] is the background
     slices = ndimage.find_objects(lab)
     medians = _label_medians(d, lab, sizes)
     grow = math.ceil(GROW_PX / s)  # dilations of a decimated blob: >= GROW_PX full-image px
-    crops = []
+    crops, rejected = [], []
     used = np.zeros(n + 1, bool)
     for k in np.argsort(-sizes[1:]) + 1:
         if sizes[k] < min_px:
@@ -404,6 +389,8 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
             if fit is not None:
                 break
         if fit is None:
+            if sizes[k] >= 4 * min_px:
+                rejected.append(k)
             continue
         blob, rr, cc, zz, r0, r1, c0, c1 = fit
         used[group] = True
@@ -423,6 +410,52 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
                                   mask=mask)))
         if len(crops) >= 3 * max_persons:
             break
+    return crops, lab, rejected
+
+
+def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: float,
+                 min_pixels: int = 400, max_persons: int = 5, seed: int = 0) -> list[Crop]:
+    """Person candidates in a depth image, most central first (see the module doc).
+
+    Args:
+        depth: (H, W) float32 metres (0/NaN invalid).
+        K: (3, 3) intrinsics.
+        min_pixels: smallest candidate blob, in full-image pixels.
+
+    Returns:
+        Crops (with `mask`, and `exclude` where a neighbour is big enough), at most
+        max_persons.
+    """
+    H, W = depth.shape
+    s = max(1, round(W / DETECT_WIDTH))
+    d = np.nan_to_num(depth[::s, ::s], nan=0.0)  # pixel (r, c) is full-image (r * s, c * s)
+    min_px = min_pixels / s ** 2
+    valid = (d >= depth_min) & (d <= depth_max)
+    r, c = np.nonzero(valid)
+    if len(r) < min_px:
+        return []
+    rng = np.random.default_rng(seed)
+    keep = _remove_planes(_pixel_points(r * s, c * s, d[r, c], K), rng)
+    fg = np.zeros_like(valid)
+    fg[valid] = keep
+    edges = _depth_edges(depth, s)
+    crops, lab, rejected = _candidates(fg & ~edges, depth, d, K, s, min_px, max_persons,
+                                       depth_min, depth_max)
+    if not crops and rejected:
+        # A person within the depth-jump threshold of a wall (or on a floor the first
+        # pass kept) is one blob with it, too big to be a person: peel the scene-sized
+        # planes of any orientation off the rejected blobs and look again.
+        # Inliers within twice a structured-light sensor's noise at the blob's depth
+        # (sigma = 1.2 mm + 1.9 mm (z - 0.4)^2, Nguyen et al. 2012), 3 cm at least.
+        for k in rejected:
+            rr, cc = np.nonzero(lab == k)
+            z = float(np.median(d[rr, cc]))
+            thresh = max(0.03, 2 * (0.0012 + 0.0019 * (z - 0.4) ** 2))
+            on_plane = ~_remove_planes(_pixel_points(rr * s, cc * s, d[rr, cc], K), rng,
+                                       max_planes=3, min_up=-1.0, thresh=thresh)
+            fg[rr[on_plane], cc[on_plane]] = False
+        crops, _, _ = _candidates(fg & ~edges, depth, d, K, s, min_px, max_persons,
+                                  depth_min, depth_max)
     crops.sort(key=lambda t: t[0])
     crops = [c for _, c in crops]
     _mark_behind(crops)
