@@ -138,7 +138,18 @@ def test_person_cut_in_two_by_an_arm_is_one_candidate():
         assert cols[-1] - cols[0] < 100  # side by side: not merged
 
 
-def test_training_crops_see_close_bodies_as_the_sensor_does(body):
+def test_child_in_front_of_an_adult_stays_two_candidates():
+    """One below the other but the lower one nearer (a child 0.4 m in front of an adult):
+    two people, not the two halves of one."""
+    K = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]])
+    d = np.zeros((480, 640), np.float32)
+    d[100:420, 280:360] = 3.4         # the adult, 1.9 m tall at 3.4 m
+    d[250:420, 270:370] = 3.0         # the child in front, hiding the adult's legs
+    cands = find_persons(d, K, 0.5, 6.0, min_pixels=300, max_persons=6)
+    assert sorted(round(c.median_depth, 1) for c in cands) == [3.0, 3.4]
+
+
+def test_training_crops_see_close_bodies_as_the_sensor_does(body, monkeypatch):
     """A body taller than the image (close range): with truncation the training crop is
     cut around its part inside the image, as at run time, and the crop pixels outside
     the sensor image are empty; without, around the whole projected body."""
@@ -151,10 +162,25 @@ def test_training_crops_see_close_bodies_as_the_sensor_does(body):
         centre = crop.v0 + crop.scale * crop.size / 2
         assert abs(centre - sum(rows) / 2) < 2, (centre, rows)
         assert abs(crop.scale * crop.size - 1.15 * (rows[1] - rows[0])) < 3
+    # A whole sample: the crop pixels outside the sensor image are empty.
+    import smpl_depth_ros.net.data as data
+    made = []
+
+    def spy(*args):
+        made.append(training_crop(*args))
+        return made[-1]
+    monkeypatch.setattr(data, 'training_crop', spy)
     maker = SampleMaker(body, SampleConfig(truncate=1.0, depth_range=(1.0, 1.1),
                                            background=0.0))
-    x, labels, coords, cm = maker(np.random.default_rng(1))  # the truncated path runs
-    assert labels.max() > 0 and x[1].sum() > 500 and not (cm & (x[1] == 0)).any()
+    cam = maker.cameras[0]
+    maker.cameras = [cam]
+    x, labels, coords, cm = maker(np.random.default_rng(1))
+    crop, truncated = made[-1]
+    assert truncated and labels.max() > 0 and x[1].sum() > 500
+    outside = ~crop.sample_indices((cam.height, cam.width))[2]
+    assert outside.any()
+    # (The sample may come mirrored.)
+    assert not x[1][outside].any() or not x[1][:, ::-1][outside].any()
 
 
 def test_person_close_to_a_wall_is_peeled_off_it():

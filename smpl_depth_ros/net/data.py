@@ -65,6 +65,7 @@ def training_crop(uv: np.ndarray, width: int, height: int, cfg: SampleConfig,
     cu0, cv0 = max(u0, 0.0), max(v0, 0.0)
     cu1, cv1 = min(u1, width - 1.0), min(v1, height - 1.0)
     truncated = bool(rng.random() < cfg.truncate and (cu0, cv0, cu1, cv1) != (u0, v0, u1, v1)
+                     and cu1 > cu0 and cv1 > cv0
                      and (cu1 - cu0) * (cv1 - cv0) >= 0.25 * (u1 - u0) * (v1 - v0))
     if truncated:
         u0, v0, u1, v1 = cu0, cv0, cu1, cv1

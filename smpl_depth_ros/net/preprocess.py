@@ -321,6 +321,15 @@ def _stacked(a: tuple[slice, slice], b: tuple[slice, slice], min_overlap: float 
             and cols >= min_overlap * narrow)
 
 
+def _upper_is_nearer(a, b) -> bool:
+    """Of two (box slices, median depth) components, the one whose box centre is higher
+    in the image is the nearer one."""
+    def centre_row(c):
+        return (c[0][0].start + c[0][0].stop) / 2
+    upper, lower = (a, b) if centre_row(a) < centre_row(b) else (b, a)
+    return upper[1] < lower[1]
+
+
 def _group_blob(group, lab, slices, d, n, grow, s, K):
     """The decimated blob of components `group`, when it has a person's 3D size
     (0.4-2.6 m tall, < 1.6 m wide; from at most 2000 of its pixels).
@@ -379,11 +388,15 @@ def _candidates(fg, depth, d, K, s, min_px, max_persons, depth_min, depth_max):
         gap = np.abs(medians[ids] - medians[k])
         small = ids[(sizes[ids] < 0.6 * sizes[k]) & (gap < 0.3)]
         # An arm across the body cuts a person into an upper and a lower half of similar
-        # size (bent forward, 0.3-0.5 m apart in depth): a component as big, stacked above
-        # or below this one, is merged too when the whole is still person-sized; side by
-        # side, it is another person.
-        stacked = [j for j, g in zip(ids, gap) if sizes[j] >= 0.6 * sizes[k] and g < 0.5
-                   and _stacked(slices[k - 1], slices[j - 1])]
+        # size: a component as big, stacked above or below this one, is merged too when
+        # the whole is still person-sized. Up to 0.5 m apart in depth only when the upper
+        # one is nearer (bent forward towards the camera): a nearer lower one is more
+        # likely a child or a seated person in front of a standing one. Side by side, it
+        # is another person.
+        stacked = [j for j, g in zip(ids, gap) if sizes[j] >= 0.6 * sizes[k]
+                   and _stacked(slices[k - 1], slices[j - 1])
+                   and (g < 0.2 or (g < 0.5 and _upper_is_nearer(
+                       (slices[k - 1], medians[k]), (slices[j - 1], medians[j]))))]
         for group in ([k, *small, *stacked], [k, *small]) if stacked else ([k, *small],):
             fit = _group_blob(group, lab, slices, d, n, grow, s, K)
             if fit is not None:

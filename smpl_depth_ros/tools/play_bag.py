@@ -168,13 +168,14 @@ def main(argv=None) -> int:
                                       'type was selected')
             # Bag time for /clock: t0 (ns) at wall time w0, or held at `hold` (ns).
             clock = dict(t0=None, w0=0.0, hold=None)
-            # Reliable publishers whose last messages must reach late subscribers before exit.
+            # Reliable publishers whose last messages must reach their subscribers (the
+            # slow ones included) before exit.
             acked = list(pubs.values()) if args.qos == 'reliable' else []
             if args.clock > 0:
                 from rosgraph_msgs.msg import Clock
                 clock_pub = node.create_publisher(Clock, '/clock', QoSProfile(
                     depth=1, reliability=ReliabilityPolicy.RELIABLE))
-                acked.append(clock_pub)  # the last message's time must reach subscribers
+                acked.append(clock_pub)  # the last message's time must arrive too
 
                 def publish_clock(ns=None):
                     if ns is None:
