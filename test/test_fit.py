@@ -139,6 +139,8 @@ def test_joint_baseline_and_lbfgs_reference(body):
     assert _pve(rj, V) < 0.06
     rl = fit.fit(V[front], front, solver='lbfgs')
     assert rl.solver == 'lbfgs' and np.isfinite(rl.energy) and rl.iterations > 0
+    r0 = fit.fit(V[front], front, solver='none')  # where the solvers start
+    assert r0.iterations == 0 and rl.energy < r0.energy
 
 
 def test_aggregate_by_vertex_is_robust():

@@ -33,7 +33,8 @@ def test_benchmark_fit_writes_json(bag, tmp_path):
     assert benchmark.main(['fit', bag, '--frames', '2', '--lbfgs-frames', '1',
                            '--json', str(out)]) == 0
     res = json.loads(out.read_text())
-    for row in ('fast_cold', 'lbfgs_cold', 'gt_joints_fast', 'fast_cold_30pct_outliers'):
+    for row in ('fast_cold', 'lbfgs_cold', 'init_only_cold', 'gt_joints_fast',
+                'fast_cold_30pct_outliers'):
         for key in ('pve_mm', 'pa_pve_mm', 'mpjpe_mm', 'fit_ms_median', 'fit_ms_p95',
                     'frames'):
             assert key in res[row], (row, key)

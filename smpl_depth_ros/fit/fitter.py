@@ -420,7 +420,8 @@ class Fitter:
             points: (N, 3) camera-frame points (numpy or torch), metres.
             vertex_ids: (N,) template vertex per point (joint index if targets_are_joints).
             init: warm start (tracking); None = cold start from the data.
-            solver: 'fast' | 'lbfgs' (default cfg.solver).
+            solver: 'fast' | 'lbfgs' (default cfg.solver), or 'none': the initialisation
+                alone (the warm start, or the data-driven cold start), for reference.
             iterations: override the solver's iteration count.
             fix_shape: keep init's shape (default: True when warm-started).
             weights: optional (N,) per-point confidence.
@@ -467,7 +468,9 @@ class Fitter:
                 rot, transl, shape = self._initial_segments((rot, transl, shape), pts, ids,
                                                             wts)
         state, sq = (rot, transl, shape), None
-        if solver == 'lbfgs':
+        if solver == 'none':  # the initialisation alone (a benchmark reference)
+            iters = 0
+        elif solver == 'lbfgs':
             state, iters = self._lbfgs(state, pts, ids, wts, targets_are_joints,
                                        iterations or cfg.lbfgs_iterations, fix_shape)
         elif solver == 'fast':
@@ -487,7 +490,7 @@ class Fitter:
                         state, sq = alt, sq2
                     iters += it2
         else:
-            raise ValueError(f"unknown solver {solver!r} (expected 'fast' or 'lbfgs')")
+            raise ValueError(f"unknown solver {solver!r} (expected 'fast', 'lbfgs' or 'none')")
         return self._result(state, (pts, ids, wts, sq), pts_all, ids_all, targets_are_joints,
                             iters, t0, solver, warm)
 

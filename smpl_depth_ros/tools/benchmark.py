@@ -53,8 +53,8 @@ def bench_fit(args) -> dict:
     rng = np.random.default_rng(0)
     stamps = list(gt['stamps'])
     sequence = bool(gt.get('sequence', False))
-    rows = {k: [] for k in ('fast_cold', 'fast_tracking', 'lbfgs_cold', 'gt_joints_fast',
-                            'fast_cold_30pct_outliers')}
+    rows = {k: [] for k in ('fast_cold', 'fast_tracking', 'lbfgs_cold', 'init_only_cold',
+                            'gt_joints_fast', 'fast_cold_30pct_outliers')}
     Vs, Js = [], []
     prev = None
     fitter.fit(np.zeros((20, 3), np.float32) + 2, np.arange(20))  # warm caches
@@ -79,6 +79,8 @@ def bench_fit(args) -> dict:
             prev = tr.params
         if n < args.lbfgs_frames:
             rows['lbfgs_cold'].append(fitter.fit(pts, ids, solver='lbfgs'))
+            # Where both solvers start: the data-driven initialisation alone.
+            rows['init_only_cold'].append(fitter.fit(pts, ids, solver='none'))
         rows['gt_joints_fast'].append(fitter.fit_joints(gt['joints'][i]))
         bad = rng.random(len(ids)) < 0.3
         ids2 = ids.copy()
