@@ -139,6 +139,11 @@ class Reconstructor:
                 lab.extend(lb)
                 coords.extend(cb)
                 timings['network'] += (time.perf_counter() - tn) * 1e3
+            if crop.behind and persons:
+                # Seen through a gap of a nearer candidate that is a person: the background
+                # between its legs, or a part of someone it hides; fitted alone, a crouching
+                # body would be made up for it.
+                continue
             fg = (lab[i] > 0) & (x[i][1] > 0)
             # A candidate is a person when the network sees a body in most of it.
             if fg.sum() < MIN_BODY_PIXELS or fg.sum() < 0.4 * max(int(x[i][1].sum()), 1) \
