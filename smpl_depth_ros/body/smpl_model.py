@@ -166,10 +166,13 @@ def load_model_arrays(path: str) -> dict[str, np.ndarray]:
     if missing:
         raise ValueError(f'{path} is not an SMPL model file: missing {missing}')
     out = {k: _to_numpy(v) for k, v in raw.items()}
+    # C-contiguous copies: a pickle's arrays may be Fortran-ordered, and BLAS sums a
+    # product of differently laid-out operands in another order (last-bit differences
+    # between the .pkl and the .npz of one model).
     for k in ('kintree_table', 'f'):
-        out[k] = out[k].astype(np.int64)
+        out[k] = np.ascontiguousarray(out[k], dtype=np.int64)
     for k in ('v_template', 'shapedirs', 'posedirs', 'J_regressor', 'weights'):
-        out[k] = out[k].astype(np.float64)
+        out[k] = np.ascontiguousarray(out[k], dtype=np.float64)
     return out
 
 
