@@ -123,8 +123,9 @@ class Reconstructor:
         persons = []
         split_done: set[int] = set()  # halves of split candidates are not split again
         x, lab, coords = [], [], []  # network inputs and outputs, per candidate so far
+        plain = {}  # candidate -> its plain network pass, when the mirrored one is pending
         if len(crops) > cfg.max_persons:
-            crops, x, lab, coords = self._rank_candidates(d, crops, timings)
+            crops, x, lab, coords, plain = self._rank_candidates(d, crops, timings)
         for i, crop in enumerate(crops):
             if len(persons) >= cfg.max_persons:
                 break
@@ -134,7 +135,7 @@ class Reconstructor:
                 tn = time.perf_counter()
                 batch = crops[i:i + cfg.max_persons - len(persons)]
                 xb = np.stack([network_input(crop_depth(d, c), c.median_depth) for c in batch])
-                lb, cb = self.net.predict(xb)
+                lb, cb = self.net.predict(xb, flip_tta=cfg.flip_tta)
                 x.extend(xb)
                 lab.extend(lb)
                 coords.extend(cb)
@@ -144,6 +145,12 @@ class Reconstructor:
                 # between its legs, or a part of someone it hides; fitted alone, a crouching
                 # body would be made up for it.
                 continue
+            if i in plain:  # ranked on the plain pass: add the mirrored one (flip_tta)
+                tn = time.perf_counter()
+                (lb,), (cb,) = self.net.combine(
+                    plain.pop(i), self.net.raw(x[i][None], mirrored=True))
+                lab[i], coords[i] = lb, cb
+                timings['network'] += (time.perf_counter() - tn) * 1e3
             fg = (lab[i] > 0) & (x[i][1] > 0)
             # A candidate is a person when the network sees a body in most of it.
             if fg.sum() < MIN_BODY_PIXELS or fg.sum() < 0.4 * max(int(x[i][1].sum()), 1) \
@@ -203,18 +210,21 @@ class Reconstructor:
         labels as body times the number of parts covering >= 2 % of it (background
         objects get few parts); the most central candidate is not always the person.
 
-        Returns (crops, network inputs, labels, coords): the outputs are filled for the
-        candidates the network already ran on.
+        Returns (crops, network inputs, labels, coords, plain): the outputs are filled for
+        the candidates the network already ran on; ranking uses the plain pass only, so
+        with flip_tta `plain` maps each candidate to that pass (the mirrored one is added
+        for the candidates actually used).
         """
         prev = self._track_mask
         if self.config.tracking and self._track is not None and prev is not None:
             if prev.shape == d.shape:
                 order = np.argsort([-(c.mask & prev).sum() for c in crops], kind='stable')
-                return [crops[i] for i in order], [], [], []
-            return crops, [], [], []
+                return [crops[i] for i in order], [], [], [], {}
+            return crops, [], [], [], {}
         tn = time.perf_counter()
         x = np.stack([network_input(crop_depth(d, c), c.median_depth) for c in crops])
-        lab, coords = self.net.predict(x)
+        probs, rc = self.net.raw(x)
+        lab, coords = self.net.combine((probs, rc))
         timings['network'] += (time.perf_counter() - tn) * 1e3
         score = []
         for xi, li in zip(x, lab):
@@ -224,8 +234,10 @@ class Reconstructor:
             score.append(-n / max(int((xi[1] > 0).sum()), 1) * parts)
         # A blob seen through a gap of a nearer candidate goes after every other one.
         order = np.lexsort((score, [c.behind for c in crops]))
+        plain = ({k: (probs[i:i + 1], rc[i:i + 1]) for k, i in enumerate(order)}
+                 if self.config.flip_tta else {})
         return ([crops[i] for i in order], [x[i] for i in order], [lab[i] for i in order],
-                [coords[i] for i in order])
+                [coords[i] for i in order], plain)
 
     def _refine_correspondences(self, pts, vids, vertices):
         """ICP step inside the predicted part: each point takes the nearest vertex of the

@@ -39,6 +39,7 @@ TORSO_PARTS = (1, 2)  # head + torso: the most rigid region, used for the rigid 
 MAX_RAW_POINTS = 20000  # input points aggregated per fit (a random subset beyond that)
 RELIN_TOL = 0.03  # shape change that triggers a re-linearisation of the rest geometry
 REST_CACHE_SIZE = 4  # shapes whose rest linearisation is kept (tracking reuses one)
+FREEZE = 1e3  # Hessian diagonal that holds an unsupported joint (data terms are O(1))
 
 
 def backproject(depth: np.ndarray, K: np.ndarray, mask: np.ndarray | None = None):
@@ -589,6 +590,9 @@ class Fitter:
         # shape steps taken while the pose is far off are noise, and each shape move
         # costs a re-linearisation); joint targets fix bone lengths from the start.
         hold = 0 if sigma_start is None or joints else iterations // 3
+        # Joints whose rotation moves (almost) no target are held where they are: with no
+        # data, a few wrong correspondences (or none) would swing an unseen limb anywhere.
+        frozen = self._unsupported_joints(prob[5], wts) if not joints else None
         mu, prev, prev_sigma, it = 1e-3, None, None, 0
         for it in range(1, iterations + 1):
             free_shape = not fix_shape and it > hold
@@ -626,6 +630,10 @@ class Fitter:
             for j in range(P):
                 b = 3 + 3 * j
                 H[b:b + 3, b:b + 3] += Hp[j]
+            if frozen is not None:
+                for j in frozen:
+                    b = 3 + 3 * j
+                    H[b:b + 3, b:b + 3] += FREEZE * np.eye(3)
             g[3:n_rot] += gp.reshape(-1)
             if free_shape:
                 inv2 = lam_s / rig.shape_std ** 2
@@ -648,6 +656,17 @@ class Fitter:
         if prev is not None and prev_sigma == s_end and en > prev[0]:
             en, state, sq = prev[0], prev[1], prev[2][0]
         return state, en, it, sq
+
+    def _unsupported_joints(self, W, wts):
+        """Pose joints (0-based, root excluded) whose rotation moves less than
+        cfg.min_joint_support targets' worth of skinning weight."""
+        k = self.cfg.min_joint_support
+        if k <= 0:
+            return None
+        moved = W @ self.rig.desc[1:].T  # (N, P): share of each target moved by joint j
+        support = (moved if wts is None else moved * (wts / wts.mean())[:, None]).sum(0)
+        frozen = np.flatnonzero(support < k)
+        return frozen if len(frozen) else None
 
     def _flipped(self, state, pts):
         """The state turned 180 deg about the body's up axis, through the points' centroid."""

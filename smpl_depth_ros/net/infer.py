@@ -7,7 +7,7 @@ from importlib import resources
 import numpy as np
 import torch
 
-from smpl_depth_ros.body.parts import PART_COLORS, EmbeddingIndex, template_embedding
+from smpl_depth_ros.body.parts import MIRROR, PART_COLORS, EmbeddingIndex, template_embedding
 from smpl_depth_ros.net.unet import IN_CHANNELS, INPUT_SIZE, build_network
 
 
@@ -24,9 +24,14 @@ class CorrespondenceNet:
         device: torch device.
         color_weight: weight of the part colour in the Eq. 2 lookup (>1 keeps matches
             inside the predicted part).
+        flip_tta: also run every crop mirrored and average the two predictions (the
+            mirrored one with left/right parts swapped and the canonical x mirrored back):
+            twice the network time, better segmentation and correspondences.
     """
 
-    def __init__(self, body, weights: str = '', device='cpu', color_weight: float = 2.0):
+    def __init__(self, body, weights: str = '', device='cpu', color_weight: float = 2.0,
+                 flip_tta: bool = False):
+        self.flip_tta = flip_tta
         path = weights or default_weights(body.name)
         if not os.path.exists(path):
             raise FileNotFoundError(
@@ -66,14 +71,40 @@ class CorrespondenceNet:
             return net
 
     @torch.inference_mode()
-    def predict(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(B, 2, S, S) inputs -> labels (B, S, S) uint8, coords (B, 3, S, S) float32."""
+    def raw(self, x: np.ndarray, mirrored: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """One network pass: (B, 2, S, S) inputs -> class probabilities (B, 15, S, S) and
+        coords (B, 3, S, S), float32. With `mirrored` the crops are run mirrored and the
+        outputs mapped back (left/right parts swapped, canonical x mirrored)."""
         t = torch.from_numpy(np.ascontiguousarray(x)).to(self.device)
+        if mirrored:
+            t = t.flip(-1)
         if self.device.type == 'cpu':
             t = t.contiguous(memory_format=torch.channels_last)
         logits, coords = self._run(t)
-        return (logits.argmax(1).to(torch.uint8).cpu().numpy(),
-                coords.float().cpu().numpy())
+        probs = logits.float().softmax(1)
+        coords = coords.float()
+        if mirrored:
+            probs = probs.flip(-1)[:, torch.as_tensor(MIRROR, device=probs.device)]
+            coords = coords.flip(-1)
+            coords = torch.cat([1.0 - coords[:, :1], coords[:, 1:]], 1)
+        return probs.cpu().numpy(), coords.cpu().numpy()
+
+    @staticmethod
+    def combine(*raws) -> tuple[np.ndarray, np.ndarray]:
+        """Average `raw` outputs (plain and mirrored) -> labels (B, S, S) uint8, coords."""
+        probs = sum(r[0] for r in raws)
+        coords = sum(r[1] for r in raws) / len(raws)
+        return probs.argmax(1).astype(np.uint8), coords.astype(np.float32, copy=False)
+
+    def predict(self, x: np.ndarray, flip_tta: bool | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """(B, 2, S, S) inputs -> labels (B, S, S) uint8, coords (B, 3, S, S) float32;
+        with flip_tta (default: the constructor's) the plain and mirrored passes are
+        averaged."""
+        tta = self.flip_tta if flip_tta is None else flip_tta
+        if tta:
+            return self.combine(self.raw(x), self.raw(x, mirrored=True))
+        return self.combine(self.raw(x))
 
     def lookup(self, labels: np.ndarray, coords: np.ndarray, mask: np.ndarray) -> np.ndarray:
         """Eq. 2 for the masked pixels of one crop: vertex ids (N,)."""

@@ -58,6 +58,8 @@ _CORE_DOC = {
     'depth_max': 'person search range: farthest depth (metres)',
     'max_persons': 'persons reconstructed per frame (most central first)',
     'min_person_pixels': 'smallest person blob (pixels)',
+    'flip_tta': 'run the network on each crop and its mirror image and average (twice the '
+                'network time; better segmentation and fits)',
     'tracking': 'warm-start from the previous frame while the track holds',
     'max_image_pixels': 'larger depth images are rejected (width x height)',
     'tracking_max_gap_s': 'reset tracking after a longer gap between frame stamps (s)',
@@ -78,6 +80,8 @@ _CORE_DOC = {
     'fit.max_points': 'fitting: per-vertex targets kept per frame',
     'fit.min_cell_points': 'fitting: drop vertex cells with fewer points (isolated wrong '
                            'correspondences), when typical cells hold twice that',
+    'fit.min_joint_support': 'fitting: joints whose rotation moves fewer targets (in '
+                             'skinning weight) are held in place (unseen limbs; 0 = off)',
     'fit.lost_residual_m': 'fitting: median residual above which the track is lost (m)',
     'fit.icp_rounds': 'fitting: part-constrained nearest-vertex refinements after the '
                       'correspondence fit (0 = none)',
@@ -115,7 +119,9 @@ _FLOAT_RANGES = {
     'mesh_decimation': (0.001, 1.0), 'mesh_lifetime_s': (0.0, 3600.0),
     'diagnostics_period_s': (0.05, 3600.0), 'warn_throttle_s': (0.0, 3600.0),
     'fit.gm_sigma': (1e-6, 10.0), 'fit.gm_sigma_start': (1e-6, 10.0),
-    'fit.lost_residual_m': (0.0, 10.0),
+    'fit.min_joint_support': 'fitting: joints whose rotation moves fewer targets (in '
+                             'skinning weight) are held in place (unseen limbs; 0 = off)',
+    'fit.lost_residual_m': (0.0, 10.0), 'fit.min_joint_support': (0.0, 1e6),
     'fit.flip_residual_m': (0.0, 10.0), 'reject_residual_m': (0.0, 10.0),
 }
 _INT_RANGES = {
