@@ -45,15 +45,18 @@ def mpjpe(pred_joints, gt_joints) -> float:
     return float(np.linalg.norm(pred_joints - gt_joints, axis=-1).mean())
 
 
-def confusion(pred: np.ndarray, gt: np.ndarray, n: int = 15) -> np.ndarray:
-    """(n, n) pixel counts, rows = ground truth, on pixels where either is a body part."""
+def confusion(pred: np.ndarray, gt: np.ndarray, n: int = 15, weight: float = 1.0
+              ) -> np.ndarray:
+    """(n, n) pixel counts, rows = ground truth, on pixels where either is a body part;
+    each pixel counts `weight` (e.g. 1 / crop scale^2: one per network-input pixel)."""
     m = (pred > 0) | (gt > 0)
-    return np.bincount(gt[m].astype(np.int64) * n + pred[m], minlength=n * n).reshape(n, n)
+    c = np.bincount(gt[m].astype(np.int64) * n + pred[m], minlength=n * n).reshape(n, n)
+    return c if weight == 1.0 else c * float(weight)
 
 
 def miou(conf: np.ndarray) -> float:
     """Mean IoU over the 14 body parts (background excluded) from a confusion matrix."""
     tp = np.diag(conf)
     union = conf.sum(0) + conf.sum(1) - tp
-    iou = tp[1:] / np.maximum(union[1:], 1)
-    return float(iou[union[1:] > 0].mean())
+    seen = union[1:] > 0
+    return float((tp[1:][seen] / union[1:][seen]).mean())

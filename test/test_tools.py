@@ -18,7 +18,7 @@ def test_evaluate_writes_table_ii_json(bag, tmp_path):
     assert evaluate.main([bag, '--json', str(out), '--figures', str(tmp_path / 'fig'),
                           '--figure-frames', '0']) == 0
     res = json.loads(out.read_text())
-    for key in ('pve_mm', 'pa_pve_mm', 'mpjpe_mm', 'miou', 'corr_err_cm_median',
+    for key in ('pve_mm', 'pa_pve_mm', 'mpjpe_mm', 'miou', 'miou_net_res', 'corr_err_cm_median',
                 'net_ms_median', 'fit_ms_median', 'frames'):
         assert key in res, key
     assert res['frames'] == 3 and res['command'].startswith(f'evaluate {bag} --json')
@@ -40,3 +40,13 @@ def test_benchmark_fit_writes_json(bag, tmp_path):
             assert key in res[row], (row, key)
     assert res['fast_cold']['pve_mm'] < 60
     assert res['command'] == f'benchmark fit {bag} --frames 2 --lbfgs-frames 1 --json {out}'
+
+
+def test_benchmark_net_writes_json(tmp_path):
+    out = tmp_path / 'net.json'
+    assert benchmark.main(['net', '--repeats', '3', '--json', str(out)]) == 0
+    res = json.loads(out.read_text())
+    for kind in ('double', 'single'):
+        for key in ('net_ms_median', 'net_ms_p95', 'net_tta_ms_median', 'net_tta_ms_p95',
+                    'lookup_ms_median', 'params'):
+            assert res[kind][key] > 0, (kind, key)

@@ -102,7 +102,9 @@ def bench_fit(args) -> dict:
 
 
 def bench_net(args) -> dict:
-    """Network + Eq. 2 lookup time per crop on this machine (batch 1, after warm-up)."""
+    """Network + Eq. 2 lookup time per crop on this machine (batch 1, after warm-up):
+    one pass (`net_ms_*`) and with the mirrored pass of flip_tta, the pipeline's default
+    (`net_tta_ms_*`)."""
     import time
 
     import torch
@@ -119,17 +121,22 @@ def bench_net(args) -> dict:
         net = CorrespondenceNet(body, default_weights('anny', kind))
         for i in range(3):
             net.predict(x[i:i + 1])
-        tn, tl = [], []
+        tn, tt, tl = [], [], []
         for k in range(args.repeats):
             xi = x[k % len(x):k % len(x) + 1]
             t0 = time.perf_counter()
-            lab, co = net.predict(xi)
+            net.predict(xi, flip_tta=False)
             t1 = time.perf_counter()
+            lab, co = net.predict(xi, flip_tta=True)
+            t2 = time.perf_counter()
             fg = (lab[0] > 0) & (xi[0, 1] > 0)
             net.lookup(lab[0], co[0], fg)
-            tl.append((time.perf_counter() - t1) * 1e3)
+            tl.append((time.perf_counter() - t2) * 1e3)
             tn.append((t1 - t0) * 1e3)
+            tt.append((t2 - t1) * 1e3)
         out[kind] = dict(net_ms_median=float(np.median(tn)), net_ms_p95=float(np.percentile(tn, 95)),
+                         net_tta_ms_median=float(np.median(tt)),
+                         net_tta_ms_p95=float(np.percentile(tt, 95)),
                          lookup_ms_median=float(np.median(tl)),
                          params=int(sum(p.numel() for p in net.net.parameters())))
     out['threads'] = torch.get_num_threads()

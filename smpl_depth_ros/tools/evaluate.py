@@ -8,7 +8,10 @@ Rows (paper Table II ablation, same frames):
   double_unet+fit    the shipped pipeline (double U-Net + fit)
   gt_corr+fit        ground-truth pixel-to-vertex correspondences + fit
 Metrics: pve_mm (paper Eq. 5: all vertices, camera frame, no alignment), pa_pve_mm
-(after a similarity Procrustes), mpjpe_mm, miou (14 parts, pixels valid in the depth),
+(after a similarity Procrustes), mpjpe_mm, miou (14 parts, pixels valid in the depth,
+full image resolution: a person 1 m away weighs 9x one 3 m away), miou_net_res (the
+same pixels, each weighted by 1 / crop scale^2: every frame's person counts by its
+area at the network's input resolution),
 corr_err_cm_median (canonical T-pose distance between the predicted and the true vertex),
 net_ms / fit_ms medians, failures (frames where no person was reconstructed; excluded
 from the means and counted).
@@ -35,7 +38,7 @@ def _load_gt(bag: str, gt_path: str | None):
 
 def _row():
     return dict(pve=[], pa=[], mpjpe=[], fit_ms=[], net_ms=[], corr=[], failures=0,
-                conf=np.zeros((15, 15), np.int64))
+                conf=np.zeros((15, 15), np.int64), conf_net=np.zeros((15, 15)))
 
 
 def _summ(r, frames):
@@ -50,6 +53,7 @@ def _summ(r, frames):
         out['corr_err_cm_median'] = float(np.median(np.concatenate(r['corr'])) * 100)
     if r['conf'].sum():
         out['miou'] = ev.miou(r['conf'])
+        out['miou_net_res'] = ev.miou(r['conf_net'])
     return out
 
 
@@ -75,6 +79,7 @@ def main(argv=None) -> int:
     from smpl_depth_ros.config import PipelineConfig
     from smpl_depth_ros.fit import Fitter
     from smpl_depth_ros.net.infer import default_weights
+    from smpl_depth_ros.net.unet import INPUT_SIZE
     from smpl_depth_ros.pipeline import Reconstructor
     from smpl_depth_ros.types import InputError
 
@@ -117,7 +122,10 @@ def main(argv=None) -> int:
             row['mpjpe'].append(ev.mpjpe(p.joints, J))
             row['fit_ms'].append(res.timings_ms['fit'])
             row['net_ms'].append(res.timings_ms['network'])
-            row['conf'] += ev.confusion(np.where(valid, res.labels, 0), np.where(valid, glab, 0))
+            pred_lab, gt_lab = np.where(valid, res.labels, 0), np.where(valid, glab, 0)
+            row['conf'] += ev.confusion(pred_lab, gt_lab)
+            side = max(p.bbox[2] - p.bbox[0], 1)  # the crop's side in full-image pixels
+            row['conf_net'] += ev.confusion(pred_lab, gt_lab, weight=(INPUT_SIZE / side) ** 2)
             g = gvid[p.pixels[:, 0], p.pixels[:, 1]]
             ok = g >= 0
             row['corr'].append(np.linalg.norm(canon[p.vertex_ids[ok]] - canon[g[ok]], axis=1))
@@ -158,10 +166,12 @@ def main(argv=None) -> int:
                weights=args.weights or 'shipped',
                body_model=body.name, ablation=table)
     print(f'{"method":18s} {"PVE mm":>8s} {"PVE p50":>8s} {"PA-PVE":>8s} {"MPJPE":>8s} {"mIoU":>6s} '
+          f'{"mIoU@net":>8s} '
           f'{"corr cm":>8s} {"net ms":>7s} {"fit ms":>7s} {"fail":>5s}')
     for k, v in table.items():
         print(f'{k:18s} {v["pve_mm"]:8.1f} {v["pve_mm_median"]:8.1f} {v["pa_pve_mm"]:8.1f} {v["mpjpe_mm"]:8.1f} '
-              f'{v.get("miou", float("nan")):6.3f} {v.get("corr_err_cm_median", float("nan")):8.2f} '
+              f'{v.get("miou", float("nan")):6.3f} {v.get("miou_net_res", float("nan")):8.3f} '
+              f'{v.get("corr_err_cm_median", float("nan")):8.2f} '
               f'{v.get("net_ms_median", float("nan")):7.1f} {v["fit_ms_median"]:7.1f} '
               f'{v["failures"]:5d}')
     write_json(out, args.json, ' '.join(['evaluate', *(sys.argv[1:] if argv is None else argv)]))
