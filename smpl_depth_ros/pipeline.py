@@ -120,6 +120,27 @@ class Reconstructor:
             self.reset()
             raise InputError('no_person', f'no person found between {cfg.depth_min:.2f} and '
                              f'{cfg.depth_max:.2f} m')
+        persons = self._persons(d, K, list(crops), stamp_ns, timings, labels_full)
+        if not persons:
+            # Second look: none of the candidates was a person, but a person standing
+            # against a wall may be hidden in a blob too big for one: peel its planes.
+            tp = time.perf_counter()
+            again = find_persons(d, K, cfg.depth_min, cfg.depth_max, cfg.min_person_pixels,
+                                 max_persons=max(cfg.max_persons, 1) + 2, peel=True)
+            timings['preprocess'] += (time.perf_counter() - tp) * 1e3
+            if [int(c.mask.sum()) for c in again] != [int(c.mask.sum()) for c in crops]:
+                persons = self._persons(d, K, again, stamp_ns, timings, labels_full)
+        if not persons:
+            self.reset()
+            raise InputError('no_person', 'person candidates found, but the network '
+                             'segmented no body in them')
+        timings['total'] = (time.perf_counter() - t0) * 1e3
+        return FrameResult(persons=persons, labels=labels_full, timings_ms=timings)
+
+    def _persons(self, d, K, crops, stamp_ns, timings, labels_full) -> list[PersonResult]:
+        """Run the network on the candidates and fit them, until max_persons are found
+        (see `process`); writes their labels into labels_full."""
+        cfg = self.config
         persons = []
         split_done: set[int] = set()  # halves of split candidates are not split again
         x, lab, coords = [], [], []  # network inputs and outputs, per candidate so far
@@ -194,12 +215,7 @@ class Reconstructor:
                       int(crop.v0 + crop.scale * crop.size)),
                 mask=mask, residual_m=fit.median_residual, num_points=int(len(pts)),
                 tracked=tracked, pixels=np.stack([r, c], 1), vertex_ids=vids))
-        if not persons:
-            self.reset()
-            raise InputError('no_person', 'person candidates found, but the network '
-                             'segmented no body in them')
-        timings['total'] = (time.perf_counter() - t0) * 1e3
-        return FrameResult(persons=persons, labels=labels_full, timings_ms=timings)
+        return persons
 
     def _rank_candidates(self, d, crops, timings):
         """Order person candidates when there are more than persons wanted.

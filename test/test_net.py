@@ -229,3 +229,17 @@ def test_person_close_to_a_wall_is_peeled_off_it():
     rows, cols = np.flatnonzero(cands[0].mask.any(1)), np.flatnonzero(cands[0].mask.any(0))
     assert abs(cands[0].median_depth - 4.0) < 0.02
     assert rows[0] >= 145 and rows[-1] <= 405 and cols[0] >= 295 and cols[-1] <= 345
+
+
+def test_peel_finds_a_person_at_a_wall_beside_a_person_sized_box():
+    """The same wall scene with a box nearer the camera: the box is a person-sized
+    candidate, so by default the wall blob is not peeled; with peel (the pipeline's second
+    look when no candidate was a person) both are candidates."""
+    K = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]])
+    d = np.full((480, 640), 4.08, np.float32)
+    d[150:400, 300:340] = 4.0
+    d[100:350, 50:150] = 2.5  # 1.2 m x 0.5 m box
+    first = find_persons(d, K, 0.5, 6.0, min_pixels=300, max_persons=3)
+    assert [round(c.median_depth, 1) for c in first] == [2.5]
+    both = find_persons(d, K, 0.5, 6.0, min_pixels=300, max_persons=3, peel=True)
+    assert sorted(round(c.median_depth, 1) for c in both) == [2.5, 4.0]

@@ -37,6 +37,25 @@ def test_reconstructs_a_synthetic_person(rec):
     assert np.median(errs) < 0.08, errs
 
 
+def test_person_against_a_wall_beside_a_box_is_found(rec):
+    """A person with their back 3 cm from a wall (one blob with it) and a person-sized box
+    nearer the camera: the box is the only candidate of the first look and the network
+    sees no body in it; the second look peels the wall off and finds the person."""
+    from smpl_depth_ros.net.preprocess import find_persons
+    f = _frame(rec, 3, background=False, noise=False)
+    d = f['depth'].copy()
+    body = d > 0
+    d[~body] = np.percentile(d[body], 98) + 0.03  # the wall
+    d[60:300, 10:110] = 2.0                       # the box: 1.1 m x 0.4 m at 2 m
+    first = find_persons(d, f['K'], 0.5, 6.0, 400, 3)
+    assert [round(c.median_depth, 1) for c in first] == [2.0]  # the person is hidden
+    rec.reset()
+    r = rec.process(d, f['K'])
+    p = r.persons[0]
+    assert abs(np.median(d[p.mask]) - np.median(f['depth'][body])) < 0.05
+    assert np.linalg.norm(p.vertices - f['vertices'], axis=1).mean() < 0.08
+
+
 def test_tracking_warm_starts_consecutive_frames(rec):
     f = _frame(rec, 3)
     rec.reset()

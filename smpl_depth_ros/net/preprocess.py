@@ -13,9 +13,9 @@ pixel counts such as min_pixels scale by 1 / s^2); boxes and masks are full-imag
    neighbouring pixels; smaller components at a similar depth near a component's box are
    merged into it (self-occlusion), and so is a component of similar size stacked above
    or below it (an arm across the waist); a blob is a person candidate when it has enough
-   pixels and a plausible 3D size (0.4-2.6 m tall, < 1.6 m wide). When no blob is, the
-   planes of any orientation are peeled off the large ones and step 3 runs again (a
-   person close to a wall).
+   pixels and a plausible 3D size (0.4-2.6 m tall, < 1.6 m wide). When no blob is (or,
+   with `peel`, when none of them proved to be a person), the planes of any orientation
+   are peeled off the large ones and step 3 runs again (a person close to a wall).
 4. A candidate's mask: its blob's s x s pixel blocks, grown by ~GROW_PX pixels, where the
    depth is valid and within GROW_DEPTH of the blob's median depth.
 5. Candidates sorted most central first (distance of the blob centroid to the image
@@ -427,13 +427,17 @@ def _candidates(fg, depth, d, K, s, min_px, max_persons, depth_min, depth_max):
 
 
 def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: float,
-                 min_pixels: int = 400, max_persons: int = 5, seed: int = 0) -> list[Crop]:
+                 min_pixels: int = 400, max_persons: int = 5, seed: int = 0,
+                 peel: bool = False) -> list[Crop]:
     """Person candidates in a depth image, most central first (see the module doc).
 
     Args:
         depth: (H, W) float32 metres (0/NaN invalid).
         K: (3, 3) intrinsics.
         min_pixels: smallest candidate blob, in full-image pixels.
+        peel: peel planes off the blobs too big for a person even when other candidates
+            were found (by default only when none was): the second look of a frame whose
+            candidates all proved not to be persons (a box beside a person at a wall).
 
     Returns:
         Crops (with `mask`, and `exclude` where a neighbour is big enough), at most
@@ -454,7 +458,8 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
     edges = _depth_edges(depth, s)
     crops, lab, rejected = _candidates(fg & ~edges, depth, d, K, s, min_px, max_persons,
                                        depth_min, depth_max)
-    if not crops and rejected:
+    peeled = None  # decimated pixels of the planes peeled off (hidden from the network)
+    if rejected and (peel or not crops):
         # A person within the depth-jump threshold of a wall (or on a floor the first
         # pass kept) is one blob with it, too big to be a person: peel the scene-sized
         # planes of any orientation off the rejected blobs and look again.
@@ -467,6 +472,8 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
             on_plane = ~_remove_planes(_pixel_points(rr * s, cc * s, d[rr, cc], K), rng,
                                        max_planes=3, min_up=-1.0, thresh=thresh)
             fg[rr[on_plane], cc[on_plane]] = False
+            peeled = np.zeros_like(fg) if peeled is None else peeled
+            peeled[rr[on_plane], cc[on_plane]] = True
         crops, _, _ = _candidates(fg & ~edges, depth, d, K, s, min_px, max_persons,
                                   depth_min, depth_max)
     crops.sort(key=lambda t: t[0])
@@ -474,9 +481,16 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
     _mark_behind(crops)
     crops = sorted(crops, key=lambda c: c.behind)[:max_persons]  # stable: central first
     sizes = [int(c.mask.sum()) for c in crops]
+    # The wall a person was peeled off stays at their depth around them: hidden from the
+    # network and the fit like a neighbour's blob (full-image pixels of its s x s blocks).
+    wall = None if peeled is None else \
+        peeled[np.minimum(np.arange(H) // s, peeled.shape[0] - 1)][
+            :, np.minimum(np.arange(W) // s, peeled.shape[1] - 1)]
     for i, c in enumerate(crops):
         others = [crops[j].mask for j in range(len(crops))
                   if j != i and sizes[j] >= 0.5 * sizes[i]]
+        if wall is not None:
+            others.append(wall)
         if others:
             c.exclude = np.logical_or.reduce(others) & ~c.mask
     return crops
