@@ -26,7 +26,7 @@ class FitConfig:
     max_points: int = 1000            # per-vertex targets kept per frame (random subset)
     min_cell_points: int = 2          # vertex cells with fewer points are dropped (when
                                       # typical cells hold twice that): isolated outliers
-    min_joint_support: float = 5.0    # joints moving fewer targets (skinning weight) are
+    min_joint_support: float = 3.0    # joints moving fewer targets (skinning weight) are
                                       # held in place: an unseen limb keeps its pose
     lost_residual_m: float = 0.06     # median residual above which the track is lost
     icp_rounds: int = 1               # part-constrained nearest-vertex refinements after
@@ -48,7 +48,8 @@ class PipelineConfig:
     device: str = 'auto'              # 'auto' | 'cpu' | 'cuda'
     depth_min: float = 0.5            # metres; person search range
     depth_max: float = 6.0
-    flip_tta: bool = True             # network on the crop and its mirror image, averaged
+    flip_tta: bool = False            # network on the crop and its mirror image, averaged
+                                      # (more accurate; twice the network time)
     max_persons: int = 1              # persons reconstructed per frame (most central first)
     min_person_pixels: int = 400
     tracking: bool = True

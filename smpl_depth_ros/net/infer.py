@@ -70,23 +70,29 @@ class CorrespondenceNet:
         except Exception:  # noqa: BLE001 - speed only
             return net
 
+    def _tensor(self, x: np.ndarray) -> torch.Tensor:
+        t = torch.from_numpy(np.ascontiguousarray(x)).to(self.device)
+        return t.contiguous(memory_format=torch.channels_last) if self.device.type == 'cpu' \
+            else t
+
+    @staticmethod
+    def _unmirror(probs: torch.Tensor, coords: torch.Tensor):
+        """Outputs of mirrored crops mapped back: flipped, left/right parts swapped (MIRROR
+        is its own inverse), canonical x mirrored (the template is left/right symmetric)."""
+        probs = probs.flip(-1)[:, torch.as_tensor(MIRROR, device=probs.device)]
+        coords = coords.flip(-1)
+        return probs, torch.cat([1.0 - coords[:, :1], coords[:, 1:]], 1)
+
     @torch.inference_mode()
     def raw(self, x: np.ndarray, mirrored: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """One network pass: (B, 2, S, S) inputs -> class probabilities (B, 15, S, S) and
         coords (B, 3, S, S), float32. With `mirrored` the crops are run mirrored and the
-        outputs mapped back (left/right parts swapped, canonical x mirrored)."""
-        t = torch.from_numpy(np.ascontiguousarray(x)).to(self.device)
-        if mirrored:
-            t = t.flip(-1)
-        if self.device.type == 'cpu':
-            t = t.contiguous(memory_format=torch.channels_last)
+        outputs mapped back. `combine` averages passes."""
+        t = self._tensor(x[..., ::-1] if mirrored else x)
         logits, coords = self._run(t)
-        probs = logits.float().softmax(1)
-        coords = coords.float()
+        probs, coords = logits.float().softmax(1), coords.float()
         if mirrored:
-            probs = probs.flip(-1)[:, torch.as_tensor(MIRROR, device=probs.device)]
-            coords = coords.flip(-1)
-            coords = torch.cat([1.0 - coords[:, :1], coords[:, 1:]], 1)
+            probs, coords = self._unmirror(probs, coords)
         return probs.cpu().numpy(), coords.cpu().numpy()
 
     @staticmethod
@@ -96,15 +102,23 @@ class CorrespondenceNet:
         coords = sum(r[1] for r in raws) / len(raws)
         return probs.argmax(1).astype(np.uint8), coords.astype(np.float32, copy=False)
 
+    @torch.inference_mode()
     def predict(self, x: np.ndarray, flip_tta: bool | None = None
                 ) -> tuple[np.ndarray, np.ndarray]:
         """(B, 2, S, S) inputs -> labels (B, S, S) uint8, coords (B, 3, S, S) float32;
-        with flip_tta (default: the constructor's) the plain and mirrored passes are
-        averaged."""
+        with flip_tta (default: the constructor's) the plain and the mirrored pass (one
+        batch) are averaged, as `combine(raw(x), raw(x, mirrored=True))`."""
         tta = self.flip_tta if flip_tta is None else flip_tta
+        B = x.shape[0]
+        t = self._tensor(np.concatenate([x, x[..., ::-1]]) if tta else x)
+        logits, coords = self._run(t)
+        logits, coords = logits.float(), coords.float()
         if tta:
-            return self.combine(self.raw(x), self.raw(x, mirrored=True))
-        return self.combine(self.raw(x))
+            pm, cm = self._unmirror(logits[B:].softmax(1), coords[B:])
+            logits = logits[:B].softmax(1) + pm
+            coords = 0.5 * (coords[:B] + cm)
+        return (logits.argmax(1).to(torch.uint8).cpu().numpy(),
+                coords.cpu().numpy())
 
     def lookup(self, labels: np.ndarray, coords: np.ndarray, mask: np.ndarray) -> np.ndarray:
         """Eq. 2 for the masked pixels of one crop: vertex ids (N,)."""

@@ -174,6 +174,8 @@ def bench_node(args) -> dict:
     exe = [sys.executable, '-m', 'smpl_depth_ros.ros.reconstructor_node', '--ros-args',
            '-r', 'depth:=/bench/depth', '-r', 'camera_info:=/bench/camera_info',
            '-p', 'qos_reliability:=reliable', '-p', 'device:=cpu']
+    for p in args.param:
+        exe += ['-p', p]
     proc = subprocess.Popen(exe, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
 
     def rss_mb():
@@ -272,6 +274,8 @@ def main(argv=None) -> int:
                     'forwards and backwards in a loop')
     nd.add_argument('--frames', type=int, default=2000)
     nd.add_argument('--rate', type=float, default=30.0)
+    nd.add_argument('-p', '--param', action='append', default=[], metavar='NAME:=VALUE',
+                    help='extra node parameter (repeatable), e.g. -p flip_tta:=false')
     nd.add_argument('--json', default=None)
     args = ap.parse_args(argv)
     command = ' '.join(['benchmark', *(sys.argv[1:] if argv is None else argv)])

@@ -68,6 +68,9 @@ def main(argv=None) -> int:
     ap.add_argument('--device', default='cpu')
     ap.add_argument('--weights', default='',
                     help='double U-Net weights to evaluate (default: the shipped ones)')
+    ap.add_argument('--flip-tta', action='store_true',
+                    help='flip test-time augmentation (PipelineConfig.flip_tta) for both '
+                    'networks')
     ap.add_argument('--json', default=None, help='write the figures here')
     ap.add_argument('--figures', default=None, help='write Fig. 3/4-style PNGs here')
     ap.add_argument('--figure-frames', default='0', help='comma-separated frame indices')
@@ -85,7 +88,8 @@ def main(argv=None) -> int:
 
     gt = _load_gt(args.bag, args.gt)
     cfg = PipelineConfig(backend=str(gt['body_model']), device=args.device,
-                         tracking=args.tracking, weights_path=args.weights)
+                         tracking=args.tracking, weights_path=args.weights,
+                         flip_tta=args.flip_tta)
     rec = Reconstructor(cfg)
     body = rec.body
     canon = body.canonical_vertices()
@@ -163,7 +167,7 @@ def main(argv=None) -> int:
     table = {k: _summ(v, n) for k, v in rows.items()}
     main_row = table['double_unet+fit']
     out = dict(main_row, bag=args.bag, tracking=args.tracking, device=args.device,
-               weights=args.weights or 'shipped',
+               weights=args.weights or 'shipped', flip_tta=args.flip_tta,
                body_model=body.name, ablation=table)
     print(f'{"method":18s} {"PVE mm":>8s} {"PVE p50":>8s} {"PA-PVE":>8s} {"MPJPE":>8s} {"mIoU":>6s} '
           f'{"mIoU@net":>8s} '
