@@ -239,8 +239,12 @@ class Reconstructor:
             return crops, [], [], [], {}
         tn = time.perf_counter()
         x = np.stack([network_input(crop_depth(d, c), c.median_depth) for c in crops])
-        probs, rc = self.net.raw(x)
-        lab, coords = self.net.combine((probs, rc))
+        tta = self.config.flip_tta
+        if tta:  # keep the plain pass's probabilities for the mirrored one added later
+            probs, rc = self.net.raw(x)
+            lab, coords = self.net.combine((probs, rc))
+        else:
+            lab, coords = self.net.predict(x, flip_tta=False)
         timings['network'] += (time.perf_counter() - tn) * 1e3
         score = []
         for xi, li in zip(x, lab):
@@ -251,7 +255,7 @@ class Reconstructor:
         # A blob seen through a gap of a nearer candidate goes after every other one.
         order = np.lexsort((score, [c.behind for c in crops]))
         plain = ({k: (probs[i:i + 1], rc[i:i + 1]) for k, i in enumerate(order)}
-                 if self.config.flip_tta else {})
+                 if tta else {})
         return ([crops[i] for i in order], [x[i] for i in order], [lab[i] for i in order],
                 [coords[i] for i in order], plain)
 
