@@ -17,6 +17,9 @@ class FitConfig:
     lambda_pose_l2: float = 1e-7      # weak pull of every joint towards rest
     lambda_shape: float = 1e-6        # lambda_beta (per squared standard deviation)
     gm_sigma: float = 0.03            # Geman-McClure scale (metres)
+    tangent_weight: float = 0.5       # weight of the residual along the model surface
+                                      # (1: point to point); the depth fixes the normal
+                                      # part better than a correspondence the tangent one
     gm_sigma_start: float = 0.1       # cold fits start wider and anneal to gm_sigma
     solver: str = 'fast'              # 'fast' (default) | 'lbfgs' (the paper's reference)
     iterations: int = 10              # cold-start iterations of the fast solver

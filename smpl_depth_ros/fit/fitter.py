@@ -287,6 +287,15 @@ class _Rig:
         return WQ.sum(1), WQ
 
 
+def _vertex_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals (V, 3)."""
+    fn = np.cross(verts[faces[:, 1]] - verts[faces[:, 0]], verts[faces[:, 2]] - verts[faces[:, 0]])
+    n = np.zeros_like(verts)
+    for k in range(3):
+        np.add.at(n, faces[:, k], fn)
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+
+
 def _single_threaded_blas() -> None:
     """The fast solver makes many small BLAS calls between torch calls; OpenBLAS's worker
     threads then fight torch's OpenMP threads for the cores and every call waits
@@ -315,6 +324,7 @@ class Fitter:
         self._rng = np.random.default_rng(0)
         # Rest vertices at the mean shape: the template for the target consistency check.
         self._template = self._rest(self.rig.shape_mean)[1]
+        self._rest_normals = _vertex_normals(self._template, body.faces_numpy())
 
     # ------------------------------------------------------------------ helpers
     def _rest(self, shape: np.ndarray):
@@ -594,12 +604,16 @@ class Fitter:
         # data, a few wrong correspondences (or none) would swing an unseen limb anywhere.
         frozen = self._unsupported_joints(prob[5], wts) if not joints else None
         mu, prev, prev_sigma, it = 1e-3, None, None, 0
+        aniso = cfg.tangent_weight < 1 and not joints
         for it in range(1, iterations + 1):
             free_shape = not fix_shape and it > hold
             n = n_rot + 3 + (S if free_shape else 0)
             if free_shape and np.abs(state[2] - prob[0]).max() > RELIN_TOL:
                 prob = self._problem(state[2], ids, joints)  # re-linearise the shape
             sq, e, G, x, WQ = self._evaluate(state, pts, ids, joints, prob)
+            nrm = None
+            if aniso:
+                sq, e, nrm = self._anisotropic(e, prob[5], G, ids)
             sigma = sigma_at(it)
             if prev is not None and sigma != prev_sigma:
                 prev = None  # energies at different scales are not comparable
@@ -607,11 +621,11 @@ class Fitter:
             en, _, aa, viol = self._energy_terms(state, sq, wts, sigma)
             if prev is not None and en > prev[0]:
                 # Reject the step: restore the last accepted state and damp more (LM).
-                en, state, (sq, e, G, x, WQ), aa, viol = prev
+                en, state, (sq, e, G, x, WQ, nrm), aa, viol = prev
                 mu *= 10
             else:
                 mu = max(mu / 3, 1e-6)
-                prev = (en, state, (sq, e, G, x, WQ), aa, viol)
+                prev = (en, state, (sq, e, G, x, WQ, nrm), aa, viol)
             rot, transl, shape = state
             # IRLS weights of the Geman-McClure term.
             om = objective.gm_weights(sq, sigma) * cfg.lambda_data / wsum
@@ -619,6 +633,9 @@ class Fitter:
                 om = om * wts
             sw = np.sqrt(om)
             Jd = self._jacobian(state, prob, G, x, WQ, free_shape)
+            if aniso:
+                a = cfg.tangent_weight
+                Jd = a * Jd + (1 - a) * nrm[:, :, None] * np.einsum('nd,ndk->nk', nrm, Jd)[:, None]
             Jf = (Jd * sw[:, None, None]).reshape(-1, n)
             H = Jf.T @ Jf
             g = Jf.T @ (e * sw[:, None]).reshape(-1)
@@ -651,11 +668,23 @@ class Fitter:
             if np.abs(step).max() < 1e-5:
                 break
         # Final state: the better of the last step and the best accepted one.
-        sq = self._evaluate(state, pts, ids, joints)[0]
+        sq, e, G = self._evaluate(state, pts, ids, joints)[:3]
+        if aniso:
+            sq = self._anisotropic(e, self._problem(state[2], ids, joints)[5], G, ids)[0]
         en = self._energy_terms(state, sq, wts, s_end)[0]
         if prev is not None and prev_sigma == s_end and en > prev[0]:
             en, state, sq = prev[0], prev[1], prev[2][0]
         return state, en, it, sq
+
+    def _anisotropic(self, e, W, G, ids):
+        """Residuals with their component along the surface scaled by tangent_weight:
+        a = tangent_weight, r = a e + (1 - a) n (n . e) with n the posed vertex normal."""
+        M = (W @ G.reshape(len(G), 9)).reshape(len(e), 3, 3)
+        n = np.einsum('nij,nj->ni', M, self._rest_normals[ids])
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        a = self.cfg.tangent_weight
+        r = a * e + (1 - a) * n * (n * e).sum(-1, keepdims=True)
+        return (r * r).sum(-1), r, n
 
     def _unsupported_joints(self, W, wts):
         """Pose joints (0-based, root excluded) whose rotation moves less than
