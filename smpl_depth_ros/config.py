@@ -29,6 +29,10 @@ class FitConfig:
     max_points: int = 1000            # per-vertex targets kept per frame (random subset)
     min_cell_points: int = 2          # vertex cells with fewer points are dropped (when
                                       # typical cells hold twice that): isolated outliers
+    free_space_weight: float = 1.0    # pull of vertices the sensor would have seen (in free
+                                      # space) to where they could hide, per mesh vertex
+    free_space_margin: float = 0.1    # metres a measurement must lie beyond a vertex
+    free_space_iterations: int = 4    # refinement iterations with the free-space term
     min_joint_support: float = 3.0    # joints moving fewer targets (skinning weight) are
                                       # held in place: an unseen limb keeps its pose
     lost_residual_m: float = 0.06     # median residual above which the track is lost

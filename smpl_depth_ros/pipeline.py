@@ -15,6 +15,7 @@ from scipy.spatial import cKDTree
 from smpl_depth_ros.body import load_body_model
 from smpl_depth_ros.config import PipelineConfig
 from smpl_depth_ros.fit import Fitter, backproject  # noqa: F401  (re-exported)
+from smpl_depth_ros.fit.freespace import FreeSpace
 from smpl_depth_ros.net.infer import CorrespondenceNet
 from smpl_depth_ros.net.preprocess import (crop_depth, find_persons, network_input,
                                            split_side_by_side)
@@ -186,7 +187,9 @@ class Reconstructor:
                            1).astype(np.float32)
             tf = time.perf_counter()
             timings['correspondence'] += (tf - tc) * 1e3
-            fit, vids, tracked = self._fit(pts, vids, stamp_ns, first=not persons)
+            free = (FreeSpace(d, K, float(np.median(z)), cfg.fit.free_space_margin)
+                    if cfg.fit.free_space_weight > 0 else None)
+            fit, vids, tracked = self._fit(pts, vids, stamp_ns, not persons, free)
             if fit.median_residual > cfg.reject_residual_m:
                 # The body model cannot explain this blob: not a person (or a failed fit),
                 # or two people side by side in one blob: then try its two halves last.
@@ -202,7 +205,8 @@ class Reconstructor:
             for _ in range(cfg.fit.tracking_icp_rounds if tracked else cfg.fit.icp_rounds):
                 vids = self._refine_correspondences(pts, vids, fit.vertices)
                 fit = self.fitter.fit(pts, vids, init=fit.params, fix_shape=False,
-                                      iterations=cfg.fit.tracking_iterations)
+                                      iterations=cfg.fit.tracking_iterations,
+                                      free_space=free)
             if not persons and cfg.tracking and self._track is not None:
                 self._track = (fit, stamp_ns)
             timings['fit'] += (time.perf_counter() - tf) * 1e3
@@ -273,11 +277,13 @@ class Reconstructor:
             out[m] = vi[cKDTree(vertices[vi]).query(pts[m])[1]]
         return out
 
-    def _fit(self, pts, vids, stamp_ns, first: bool):
+    def _fit(self, pts, vids, stamp_ns, first: bool, free=None):
         """Fit one person: warm-started from the previous frame while the track holds
         (refining the correspondences on the previous, moved mesh was measured to lock
         onto wrong poses; `process` refines them on this frame's warm fit instead), else
         cold.
+
+        `free`: the frame's FreeSpace (or None), passed to the fitter.
 
         Returns (FitResult, correspondences used, tracked).
         """
@@ -287,11 +293,11 @@ class Reconstructor:
             gap_ok = (stamp_ns is None or prev_stamp is None or
                       0 <= (stamp_ns - prev_stamp) * 1e-9 <= cfg.tracking_max_gap_s)
             if gap_ok:
-                fit = self.fitter.fit(pts, vids, init=prev.params)
+                fit = self.fitter.fit(pts, vids, init=prev.params, free_space=free)
                 if fit.median_residual <= cfg.fit.lost_residual_m:
                     self._track = (fit, stamp_ns)
                     return fit, vids, True
-        fit = self.fitter.fit(pts, vids)
+        fit = self.fitter.fit(pts, vids, free_space=free)
         if first:
             self._track = (fit, stamp_ns) if cfg.tracking else None
         return fit, vids, False

@@ -7,6 +7,7 @@ from smpl_depth_ros.body.anny_model import AnnyBody
 from smpl_depth_ros.config import FitConfig
 from smpl_depth_ros.fit import Fitter, backproject
 from smpl_depth_ros.fit import objective
+from smpl_depth_ros.fit.freespace import FreeSpace
 from smpl_depth_ros.synth.poses import PoseSampler, placement, sample_shape
 
 
@@ -160,6 +161,72 @@ def test_tangent_weight_resists_correspondences_biased_inwards(body):
     err = {a: _pve(Fitter(body, FitConfig(tangent_weight=a)).fit(V[front], ids), V)
            for a in (1.0, 0.5)}
     assert err[0.5] < 0.7 * err[1.0], err
+
+
+def test_free_space_marks_what_the_sensor_would_have_seen():
+    """A 'person' box at 2 m in front of a wall at 4 m, with a hole in the measurement:
+    only a vertex in front of the wall is in free space, pulled sideways (at its own
+    depth) to the box's edge. One in front of the box is left alone (see the module)."""
+    K = np.array([[100.0, 0, 50], [0, 100.0, 40], [0, 0, 1]])
+    depth = np.full((80, 100), 4.0, np.float32)
+    depth[20:60, 30:50] = 2.0  # the person
+    depth[0:10, 0:10] = 0.0    # no measurement: hides anything
+    fs = FreeSpace(depth, K, ref_depth=2.0)
+
+    def at(u, v, z):
+        return [(u - 50) * z / 100, (v - 40) * z / 100, z]
+    verts = np.array([at(70, 40, 2.0),   # in front of the wall: seen through
+                      at(40, 40, 2.3),   # behind the person: hidden
+                      at(70, 40, 4.5),   # behind the wall: hidden
+                      at(5, 5, 2.0),     # on the unmeasured patch
+                      at(200, 40, 2.0),  # outside the image
+                      at(51, 40, 2.0),   # 1.5 px beside the person: within tolerance
+                      at(40, 30, 1.5)])  # in front of the person: it would be seen
+    ids, tgt = fs.targets(verts)
+    assert list(ids) == [0]
+    # (the edge is column 49; the hiding region is sampled every 2 pixels)
+    assert np.allclose(tgt[0], at(49, 40, 2.0), atol=0.025) and tgt[0, 2] == 2.0
+
+
+def test_free_space_moves_an_unseen_arm_out_of_sight(body):
+    """Seen from the side, the far arm hidden behind the torso and no correspondences on
+    it; the warm start has that arm raised into view. Nothing else moves it (the arm is
+    held), but the depth image says the sensor sees the wall there: the free-space term
+    brings it back out of sight, towards the truth."""
+    from smpl_depth_ros.synth.camera import CAMERAS
+    from smpl_depth_ros.synth.render import render_body
+    from smpl_depth_ros.types import BodyParams
+    names = list(body.joint_names[1:])
+    parts = body.part_labels.numpy()
+    arm = np.isin(parts, (3, 5, 7))  # upper_arm_l, lower_arm_l, hand_l
+    pose = np.zeros((len(names), 3), np.float32)
+    shape = body.shape_mean.numpy().astype(np.float32)
+    go, tr = placement(body, shape, np.pi / 2, 0.0, 0.0, np.array([0.0, 0.1, 3.0]))
+    with torch.no_grad():
+        V = body(torch.tensor(pose)[None], torch.tensor(shape)[None], torch.tensor(go)[None],
+                 torch.tensor(tr)[None]).vertices[0].numpy()
+    cam = CAMERAS['kinect_v1']
+    r = render_body(V, body.faces_numpy(), parts, cam)
+    seen = np.unique(r.vertex_ids[r.vertex_ids >= 0])
+    assert np.isin(np.flatnonzero(arm), seen).mean() < 0.3  # the arm is mostly hidden
+    seen = seen[~arm[seen]]
+    depth = np.where(r.depth > 0, r.depth, 4.5).astype(np.float32)  # a wall behind
+    raised = pose.copy()
+    C = body.canonical_rotation.numpy().astype(np.float64)
+    raised[names.index('left_shoulder')] = C.T @ np.radians([90.0, 0.0, 0.0])
+    init = BodyParams(pose=raised, shape=shape, global_orient=np.float32(go),
+                      transl=np.float32(tr))
+    fs = FreeSpace(depth, cam.K, ref_depth=float(np.median(V[seen, 2])))
+    err, free = {}, {}
+    for w in (0.0, 1.0):
+        fit = Fitter(body, FitConfig(free_space_weight=w)).fit(V[seen], seen, init=init,
+                                                               free_space=fs)
+        d = np.linalg.norm(fit.vertices - V, axis=1)
+        err[w] = d[arm].mean()
+        free[w] = len(fs.targets(fit.vertices.astype(np.float64))[0])
+        assert d[~arm].mean() < 0.01
+    assert err[0.0] > 0.4 and err[1.0] < 0.7 * err[0.0], err
+    assert free[1.0] < 0.3 * free[0.0], free
 
 
 def test_warm_start_needs_fewer_iterations(body):

@@ -33,11 +33,14 @@ from scipy.spatial.transform import Rotation
 from smpl_depth_ros.body.base import BodyModel
 from smpl_depth_ros.config import FitConfig
 from smpl_depth_ros.fit import objective
+from smpl_depth_ros.fit.freespace import FreeSpace
 from smpl_depth_ros.types import BodyParams
 
 TORSO_PARTS = (1, 2)  # head + torso: the most rigid region, used for the rigid init
 MAX_RAW_POINTS = 20000  # input points aggregated per fit (a random subset beyond that)
 RELIN_TOL = 0.03  # shape change that triggers a re-linearisation of the rest geometry
+MIN_FREE = 5  # vertices in free space that call for the free-space refinement (exact
+             # fits to noisy frames leave ~2, at most 9 on val_s2)
 REST_CACHE_SIZE = 4  # shapes whose rest linearisation is kept (tracking reuses one)
 FREEZE = 1e3  # Hessian diagonal that holds an unsupported joint (data terms are O(1))
 
@@ -424,7 +427,8 @@ class Fitter:
     def fit(self, points, vertex_ids, init: BodyParams | None = None, *,
             solver: str | None = None, iterations: int | None = None,
             fix_shape: bool | None = None, weights=None,
-            targets_are_joints: bool = False) -> FitResult:
+            targets_are_joints: bool = False, free_space: FreeSpace | None = None
+            ) -> FitResult:
         """Fit to points with correspondences.
 
         Args:
@@ -436,6 +440,9 @@ class Fitter:
             iterations: override the solver's iteration count.
             fix_shape: keep init's shape (default: True when warm-started).
             weights: optional (N,) per-point confidence.
+            free_space: the frame's free space (fit.freespace): vertices the sensor
+                would have seen are pulled to where they could hide
+                (cfg.free_space_weight; the fast solver only).
 
         Returns:
             FitResult.
@@ -500,6 +507,15 @@ class Fitter:
                     if en2 < en:
                         state, sq = alt, sq2
                     iters += it2
+            if (free_space is not None and cfg.free_space_weight > 0 and not targets_are_joints
+                    and len(free_space.targets(self._vertices(state)[0])[0]) >= MIN_FREE):
+                # Then the free space: parts the sensor would have seen are moved to where
+                # they can hide (a refinement: from a cold start, most of the body is
+                # "in free space" and the pulls would only scramble the pose).
+                state, _, it2, sq = self._levenberg_marquardt(
+                    state, pts, ids, wts, False, cfg.free_space_iterations, True, None,
+                    free_space)
+                iters += it2
         else:
             raise ValueError(f"unknown solver {solver!r} (expected 'fast', 'lbfgs' or 'none')")
         return self._result(state, (pts, ids, wts, sq), pts_all, ids_all, targets_are_joints,
@@ -571,14 +587,17 @@ class Fitter:
         return Jd
 
     def _levenberg_marquardt(self, state, pts, ids, wts, joints: bool, iterations: int,
-                             fix_shape: bool, sigma_start: float | None = None):
+                             fix_shape: bool, sigma_start: float | None = None,
+                             free: FreeSpace | None = None):
         """IRLS / Levenberg-Marquardt on the robust objective.
 
         Rotations are updated multiplicatively (R_j <- exp(delta_j) R_j) with the analytic
         LBS Jacobian; translation additively; shape through the exact local linearisation
         of the rest geometry (re-linearised when it moves: anny's phenotype mapping is
-        piecewise linear). Returns (state, energy at the final scale, iterations, squared
-        residuals at that state).
+        piecewise linear). With `free`, vertices in free space are pulled (L2,
+        cfg.free_space_weight per mesh vertex) to their nearest hiding place, found again
+        at every evaluated state (ICP-style). Returns (state, energy at the final scale,
+        iterations, squared residuals at that state).
         """
         cfg, rig = self.cfg, self.rig
         s_end = cfg.gm_sigma
@@ -602,7 +621,8 @@ class Fitter:
         hold = 0 if sigma_start is None or joints else iterations // 3
         # Joints whose rotation moves (almost) no target are held where they are: with no
         # data, a few wrong correspondences (or none) would swing an unseen limb anywhere.
-        frozen = self._unsupported_joints(prob[5], wts) if not joints else None
+        # Free-space targets (when given) count as support too: they do constrain a limb.
+        support = self._joint_support(prob[5], wts) if not joints else None
         mu, prev, prev_sigma, it = 1e-3, None, None, 0
         aniso = cfg.tangent_weight < 1 and not joints
         for it in range(1, iterations + 1):
@@ -614,18 +634,21 @@ class Fitter:
             nrm = None
             if aniso:
                 sq, e, nrm = self._anisotropic(e, prob[5], G, ids)
+            fterm = self._free_space_term(state, prob, G, x, free) if free else None
             sigma = sigma_at(it)
             if prev is not None and sigma != prev_sigma:
                 prev = None  # energies at different scales are not comparable
             prev_sigma = sigma
             en, _, aa, viol = self._energy_terms(state, sq, wts, sigma)
+            if fterm is not None:
+                en += fterm[0]
             if prev is not None and en > prev[0]:
                 # Reject the step: restore the last accepted state and damp more (LM).
-                en, state, (sq, e, G, x, WQ, nrm), aa, viol = prev
+                en, state, (sq, e, G, x, WQ, nrm, fterm), aa, viol = prev
                 mu *= 10
             else:
                 mu = max(mu / 3, 1e-6)
-                prev = (en, state, (sq, e, G, x, WQ, nrm), aa, viol)
+                prev = (en, state, (sq, e, G, x, WQ, nrm, fterm), aa, viol)
             rot, transl, shape = state
             # IRLS weights of the Geman-McClure term.
             om = objective.gm_weights(sq, sigma) * cfg.lambda_data / wsum
@@ -639,6 +662,11 @@ class Fitter:
             Jf = (Jd * sw[:, None, None]).reshape(-1, n)
             H = Jf.T @ Jf
             g = Jf.T @ (e * sw[:, None]).reshape(-1)
+            if fterm is not None and len(fterm[2]):
+                _, w_f, e_f, prob_f, WQ_f = fterm
+                Jf = self._jacobian(state, prob_f, G, x, WQ_f, free_shape).reshape(-1, n)
+                H += w_f * Jf.T @ Jf
+                g += w_f * Jf.T @ e_f.reshape(-1)
             # Pose priors (Jacobian of the canonical axis-angle ~ C for the increment).
             out = (viol != 0).astype(np.float64)
             Jp = out[..., None] * rig.C[None]  # (P, 3, 3), sign irrelevant in H
@@ -647,8 +675,11 @@ class Fitter:
             for j in range(P):
                 b = 3 + 3 * j
                 H[b:b + 3, b:b + 3] += Hp[j]
-            if frozen is not None:
-                for j in frozen:
+            if support is not None:
+                sup = support
+                if fterm is not None and len(fterm[2]):
+                    sup = support + (fterm[3][5] @ rig.desc[1:].T).sum(0)
+                for j in np.flatnonzero(sup < cfg.min_joint_support):
                     b = 3 + 3 * j
                     H[b:b + 3, b:b + 3] += FREEZE * np.eye(3)
             g[3:n_rot] += gp.reshape(-1)
@@ -668,13 +699,45 @@ class Fitter:
             if np.abs(step).max() < 1e-5:
                 break
         # Final state: the better of the last step and the best accepted one.
-        sq, e, G = self._evaluate(state, pts, ids, joints)[:3]
+        prob = self._problem(state[2], ids, joints)
+        sq, e, G, x, _ = self._evaluate(state, pts, ids, joints, prob)
         if aniso:
-            sq = self._anisotropic(e, self._problem(state[2], ids, joints)[5], G, ids)[0]
+            sq = self._anisotropic(e, prob[5], G, ids)[0]
         en = self._energy_terms(state, sq, wts, s_end)[0]
+        if free:
+            en += self._free_space_term(state, prob, G, x, free)[0]
         if prev is not None and prev_sigma == s_end and en > prev[0]:
             en, state, sq = prev[0], prev[1], prev[2][0]
         return state, en, it, sq
+
+    def _vertices(self, state):
+        """The whole posed mesh (V, 3), exact at the state's shape, and the posed bone
+        heads without translation (Jb, 3)."""
+        rig = self.rig
+        rot, transl, shape = state
+        _, r0, _, h0, _ = self._rest(shape)
+        G, x = rig.fk(rot, h0)
+        verts = rig.skin_points(rig.weights, G, x, h0, r0 + self._pose_offsets(rot, None))
+        return verts + transl, x
+
+    def _free_space_term(self, state, prob, G, x, free: FreeSpace):
+        """The free-space term at `state` (G, x from `_evaluate` with `prob`):
+        (energy, weight per residual, residuals (M, 3), the problem and skinning terms of
+        the M vertices in free space for `_jacobian`)."""
+        rig = self.rig
+        rot, transl, shape = state
+        s0, _, _, h0, B, _ = prob
+        _, r0, A, _, _ = self._rest(s0)
+        ds = shape - s0
+        heads = h0 + B @ ds
+        verts = rig.skin_points(rig.weights, G, x, heads, r0 + A @ ds) + transl
+        ids, tgt = free.targets(verts)
+        w = self.cfg.free_space_weight / len(verts)
+        if not len(ids):
+            return 0.0, w, np.zeros((0, 3)), None, None
+        prob_f = (s0, r0[ids], A[ids], h0, B, rig.weights[ids])
+        _, e, _, _, WQ = self._evaluate(state, tgt, ids, False, prob_f)
+        return w * float((e * e).sum()), w, e, prob_f, WQ
 
     def _anisotropic(self, e, W, G, ids):
         """Residuals with their component along the surface scaled by tangent_weight:
@@ -686,16 +749,11 @@ class Fitter:
         r = a * e + (1 - a) * n * (n * e).sum(-1, keepdims=True)
         return (r * r).sum(-1), r, n
 
-    def _unsupported_joints(self, W, wts):
-        """Pose joints (0-based, root excluded) whose rotation moves less than
-        cfg.min_joint_support targets' worth of skinning weight."""
-        k = self.cfg.min_joint_support
-        if k <= 0:
-            return None
+    def _joint_support(self, W, wts):
+        """Per pose joint (0-based, root excluded): how many targets' worth of skinning
+        weight its rotation moves; joints below cfg.min_joint_support are held."""
         moved = W @ self.rig.desc[1:].T  # (N, P): share of each target moved by joint j
-        support = (moved if wts is None else moved * (wts / wts.mean())[:, None]).sum(0)
-        frozen = np.flatnonzero(support < k)
-        return frozen if len(frozen) else None
+        return (moved if wts is None else moved * (wts / wts.mean())[:, None]).sum(0)
 
     def _flipped(self, state, pts):
         """The state turned 180 deg about the body's up axis, through the points' centroid."""
@@ -747,10 +805,7 @@ class Fitter:
         if sq is None:
             sq = self._evaluate(state, pts, ids, joints)[0]
         en, data, aa, _ = self._energy_terms(state, sq, wts, self.cfg.gm_sigma)
-        s0, r0, A, h0, B = self._rest(shape)  # exact at the final shape
-        G, x = rig.fk(rot, h0)
-        verts = rig.skin_points(rig.weights, G, x, h0, r0 + self._pose_offsets(rot, None))
-        verts += transl
+        verts, x = self._vertices(state)
         model = (x[rig.jb] + transl)[ids_all] if joints else verts[ids_all]
         sq = ((model - pts_all) ** 2).sum(-1)
         f32 = lambda a: np.asarray(a, np.float32)  # noqa: E731
