@@ -39,8 +39,9 @@ from smpl_depth_ros.types import BodyParams
 TORSO_PARTS = (1, 2)  # head + torso: the most rigid region, used for the rigid init
 MAX_RAW_POINTS = 20000  # input points aggregated per fit (a random subset beyond that)
 RELIN_TOL = 0.03  # shape change that triggers a re-linearisation of the rest geometry
-MIN_FREE = 5  # vertices in free space that call for the free-space refinement (exact
-             # fits to noisy frames leave ~2, at most 9 on val_s2)
+FREE_SQ_MIN = 0.02  # m^2: summed squared free-space distances that call for the refinement
+                    # (exact fits to noisy val_s2 frames leave <= 0.005; 0.02 is e.g. 8
+                    # vertices 5 cm out, or 2 at 10 cm)
 REST_CACHE_SIZE = 4  # shapes whose rest linearisation is kept (tracking reuses one)
 FREEZE = 1e3  # Hessian diagonal that holds an unsupported joint (data terms are O(1))
 
@@ -508,7 +509,7 @@ class Fitter:
                         state, sq = alt, sq2
                     iters += it2
             if (free_space is not None and cfg.free_space_weight > 0 and not targets_are_joints
-                    and len(free_space.targets(self._vertices(state)[0])[0]) >= MIN_FREE):
+                    and self._free_sq(state, free_space) >= FREE_SQ_MIN):
                 # Then the free space: parts the sensor would have seen are moved to where
                 # they can hide (a refinement: from a cold start, most of the body is
                 # "in free space" and the pulls would only scramble the pose).
@@ -719,6 +720,12 @@ class Fitter:
         G, x = rig.fk(rot, h0)
         verts = rig.skin_points(rig.weights, G, x, h0, r0 + self._pose_offsets(rot, None))
         return verts + transl, x
+
+    def _free_sq(self, state, free: FreeSpace) -> float:
+        """Sum of the squared distances of the vertices in free space to their targets."""
+        v = self._vertices(state)[0]
+        i, t = free.targets(v)
+        return float(((v[i] - t) ** 2).sum())
 
     def _free_space_term(self, state, prob, G, x, free: FreeSpace):
         """The free-space term at `state` (G, x from `_evaluate` with `prob`):
