@@ -187,8 +187,13 @@ class Reconstructor:
                            1).astype(np.float32)
             tf = time.perf_counter()
             timings['correspondence'] += (tf - tc) * 1e3
-            free = (FreeSpace(d, K, float(np.median(z)), cfg.fit.free_space_margin)
-                    if cfg.fit.free_space_weight > 0 else None)
+            free = None
+            if cfg.fit.free_space_weight > 0:  # looked for around the crop (+1/4 a side)
+                side = crop.scale * crop.size
+                box = (crop.u0 - side / 4, crop.v0 - side / 4, crop.u0 + 1.25 * side,
+                       crop.v0 + 1.25 * side)
+                free = FreeSpace(d, K, float(np.median(z)), cfg.fit.free_space_margin,
+                                 box=box)
             fit, vids, tracked = self._fit(pts, vids, stamp_ns, not persons, free)
             if fit.median_residual > cfg.reject_residual_m:
                 # The body model cannot explain this blob: not a person (or a failed fit),

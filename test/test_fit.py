@@ -186,6 +186,10 @@ def test_free_space_marks_what_the_sensor_would_have_seen():
     assert list(ids) == [0]
     # (the edge is column 49; the hiding region is sampled every 2 pixels)
     assert np.allclose(tgt[0], at(49, 40, 2.0), atol=0.025) and tgt[0, 2] == 2.0
+    # Looked for in a window around the person only: the same inside, nothing outside.
+    inside = FreeSpace(depth, K, ref_depth=2.0, box=(21, 11, 80, 70)).targets(verts)
+    assert list(inside[0]) == [0] and np.allclose(inside[1], tgt)
+    assert len(FreeSpace(depth, K, ref_depth=2.0, box=(20, 10, 60, 70)).targets(verts)[0]) == 0
 
 
 def test_free_space_moves_an_unseen_arm_out_of_sight(body):

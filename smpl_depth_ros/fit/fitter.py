@@ -657,11 +657,18 @@ class Fitter:
                 om = om * wts
             sw = np.sqrt(om)
             Jd = self._jacobian(state, prob, G, x, WQ, free_shape)
-            if aniso:
-                a = cfg.tangent_weight
-                Jd = a * Jd + (1 - a) * nrm[:, :, None] * np.einsum('nd,ndk->nk', nrm, Jd)[:, None]
-            Jf = (Jd * sw[:, None, None]).reshape(-1, n)
+            Jd *= sw[:, None, None]
+            Jf = Jd.reshape(-1, n)
             H = Jf.T @ Jf
+            if aniso:
+                # r = A e_raw with A = a I + (1 - a) n n^T (symmetric): the Gauss-Newton
+                # system of r is J^T A^2 J = a^2 J^T J + (1 - a^2) (n.J)^T (n.J) and
+                # J^T A r, without forming A J.
+                a = cfg.tangent_weight
+                Jn = np.einsum('nd,ndk->nk', nrm, Jd)
+                H *= a * a
+                H += (1 - a * a) * (Jn.T @ Jn)
+                e = a * e + (1 - a) * nrm * (nrm * e).sum(-1, keepdims=True)
             g = Jf.T @ (e * sw[:, None]).reshape(-1)
             if fterm is not None and len(fterm[2]):
                 _, w_f, e_f, prob_f, WQ_f = fterm

@@ -33,10 +33,14 @@ class FreeSpace:
         tolerance_px: vertices this close to a hiding pixel are left alone (silhouette
             erosion and edge noise of the sensor).
         stride: the hiding region's distance transform is computed every `stride` pixels.
+        box: optional (u0, v0, u1, v1) pixel window around the person: only there is
+            free space looked for, and hiding places (the rest of the image is not
+            looked at), for speed.
     """
 
     def __init__(self, depth: np.ndarray, K: np.ndarray, ref_depth: float,
-                 margin: float = 0.1, tolerance_px: float = 2.0, stride: int = 2):
+                 margin: float = 0.1, tolerance_px: float = 2.0, stride: int = 2,
+                 box: tuple[float, float, float, float] | None = None):
         self.depth = np.nan_to_num(np.asarray(depth, np.float32), nan=0.0, posinf=0.0,
                                    neginf=0.0)
         self.K = np.asarray(K, np.float64)
@@ -44,6 +48,13 @@ class FreeSpace:
         self.margin = margin
         self.tolerance_px = tolerance_px
         self.stride = stride
+        H, W = self.depth.shape
+        if box is None:
+            box = (0, 0, W, H)
+        # The window, on the stride grid.
+        s = stride
+        self._u0, self._v0 = max(int(box[0]) // s, 0) * s, max(int(box[1]) // s, 0) * s
+        self._u1, self._v1 = min(int(np.ceil(box[2])), W), min(int(np.ceil(box[3])), H)
         self._nearest = None  # distance transform, computed on first need
 
     def _hiding(self):
@@ -51,12 +62,19 @@ class FreeSpace:
         cell where a vertex at the person's depth could hide (outside the image counts)."""
         if self._nearest is None:
             s = self.stride
-            d = self.depth[::s, ::s]
+            d = self.depth[self._v0:self._v1:s, self._u0:self._u1:s]
             hide = (d <= 0) | (d <= self.ref_depth + self.margin)
-            hide = np.pad(hide, 1, constant_values=True)
+            # Beyond the image a vertex is hidden; beyond the window, merely not looked at.
+            H, W = self.depth.shape
+            hide = np.pad(hide, 1, constant_values=False)
+            hide[0, :], hide[-1, :] = self._v0 == 0, self._v1 >= H
+            hide[:, 0], hide[:, -1] = self._u0 == 0, self._u1 >= W
+            if not hide.any():  # nowhere to hide in view: nothing to pull towards
+                self._nearest = (np.zeros(hide[1:-1, 1:-1].shape),) * 3
+                return self._nearest
             dist, (iy, ix) = ndimage.distance_transform_edt(~hide, return_indices=True)
-            self._nearest = (dist[1:-1, 1:-1] * s, (iy[1:-1, 1:-1] - 1) * s,
-                             (ix[1:-1, 1:-1] - 1) * s)
+            self._nearest = (dist[1:-1, 1:-1] * s, (iy[1:-1, 1:-1] - 1) * s + self._v0,
+                             (ix[1:-1, 1:-1] - 1) * s + self._u0)
         return self._nearest
 
     def targets(self, verts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -70,18 +88,18 @@ class FreeSpace:
             nearest pixel where the vertex would be hidden.
         """
         K, d = self.K, self.depth
-        H, W = d.shape
         z = verts[:, 2]
         zs = np.where(z > 1e-3, z, 1.0)
         u = np.floor(K[0, 0] * verts[:, 0] / zs + K[0, 2] + 0.5).astype(np.int64)
         v = np.floor(K[1, 1] * verts[:, 1] / zs + K[1, 2] + 0.5).astype(np.int64)
-        ids = np.flatnonzero((z > 1e-3) & (u >= 0) & (u < W) & (v >= 0) & (v < H))
+        ids = np.flatnonzero((z > 1e-3) & (u >= self._u0) & (u < self._u1) & (v >= self._v0)
+                             & (v < self._v1))
         ids = ids[d[v[ids], u[ids]] > z[ids] + self.margin]
         if not len(ids):
             return ids, np.zeros((0, 3))
         dist, ty, tx = self._hiding()
         s = self.stride
-        gy, gx = v[ids] // s, u[ids] // s
+        gy, gx = (v[ids] - self._v0) // s, (u[ids] - self._u0) // s
         far = dist[gy, gx] > self.tolerance_px  # 0 in front of the person: left alone
         ids, gy, gx = ids[far], gy[far], gx[far]
         zt = z[ids]
