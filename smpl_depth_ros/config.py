@@ -20,6 +20,8 @@ class FitConfig:
     tangent_weight: float = 0.5       # weight of the residual along the model surface
                                       # (1: point to point); the depth fixes the normal
                                       # part better than a correspondence the tangent one
+    back_facing_weight: float = 0.1   # IRLS weight of targets whose vertex faces away from
+                                      # the camera (with tangent_weight < 1)
     gm_sigma_start: float = 0.1       # cold fits start wider and anneal to gm_sigma
     solver: str = 'fast'              # 'fast' (default) | 'lbfgs' (the paper's reference)
     iterations: int = 10              # cold-start iterations of the fast solver

@@ -163,6 +163,25 @@ def test_tangent_weight_resists_correspondences_biased_inwards(body):
     assert err[0.5] < 0.7 * err[1.0], err
 
 
+def test_correspondences_on_the_far_side_are_discounted(body):
+    """A quarter of the points named a vertex of the same part on the side facing away
+    from the camera (front/back confusion of a limb's coordinates): such a vertex cannot
+    have been observed, and down-weighting it (back_facing_weight) fits better."""
+    rng, V, _, front = _scene(body, 12)
+    parts = body.part_labels.numpy()
+    n = np.asarray(__import__('trimesh').Trimesh(V, body.faces_numpy(), process=False)
+                   .vertex_normals)
+    back = (n * V).sum(1) > 0.2
+    ids = front.copy()
+    for k in np.flatnonzero(rng.random(len(front)) < 0.25):
+        cand = np.flatnonzero(back & (parts == parts[front[k]]))
+        if len(cand):
+            ids[k] = cand[rng.integers(len(cand))]
+    err = {w: _pve(Fitter(body, FitConfig(back_facing_weight=w)).fit(V[front], ids), V)
+           for w in (1.0, 0.1)}
+    assert err[0.1] < 0.8 * err[1.0], err
+
+
 def test_free_space_marks_what_the_sensor_would_have_seen():
     """A 'person' box at 2 m in front of a wall at 4 m, with a hole in the measurement:
     only a vertex in front of the wall is in free space, pulled sideways (at its own

@@ -632,9 +632,13 @@ class Fitter:
             if free_shape and np.abs(state[2] - prob[0]).max() > RELIN_TOL:
                 prob = self._problem(state[2], ids, joints)  # re-linearise the shape
             sq, e, G, x, WQ = self._evaluate(state, pts, ids, joints, prob)
-            nrm = None
+            nrm, facing = None, 1.0
             if aniso:
+                # A vertex that faces away from the camera cannot have been observed: a
+                # point on it is a wrong correspondence (IRLS weight only, like the GM's).
+                v = pts + e
                 sq, e, nrm = self._anisotropic(e, prob[5], G, ids)
+                facing = np.where((nrm * v).sum(-1) > 0, cfg.back_facing_weight, 1.0)
             fterm = self._free_space_term(state, prob, G, x, free) if free else None
             sigma = sigma_at(it)
             if prev is not None and sigma != prev_sigma:
@@ -645,14 +649,14 @@ class Fitter:
                 en += fterm[0]
             if prev is not None and en > prev[0]:
                 # Reject the step: restore the last accepted state and damp more (LM).
-                en, state, (sq, e, G, x, WQ, nrm, fterm), aa, viol = prev
+                en, state, (sq, e, G, x, WQ, nrm, facing, fterm), aa, viol = prev
                 mu *= 10
             else:
                 mu = max(mu / 3, 1e-6)
-                prev = (en, state, (sq, e, G, x, WQ, nrm, fterm), aa, viol)
+                prev = (en, state, (sq, e, G, x, WQ, nrm, facing, fterm), aa, viol)
             rot, transl, shape = state
             # IRLS weights of the Geman-McClure term.
-            om = objective.gm_weights(sq, sigma) * cfg.lambda_data / wsum
+            om = objective.gm_weights(sq, sigma) * facing * cfg.lambda_data / wsum
             if wts is not None:
                 om = om * wts
             sw = np.sqrt(om)
