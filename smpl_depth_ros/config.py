@@ -64,6 +64,9 @@ class PipelineConfig:
     tracking: bool = True
     max_image_pixels: int = 4096 * 4096
     tracking_max_gap_s: float = 0.5   # reset tracking after a longer gap between frames
+    shape_sample_every: int = 5       # tracking: every n-th tracked frame also fits the
+                                      # shape; tracked frames fit the pose at the mean of
+                                      # these samples (0: keep the cold fit's shape)
     reject_residual_m: float = 0.09   # candidates whose fit leaves a larger median residual
                                       # are not reported as persons
     fit: FitConfig = field(default_factory=FitConfig)

@@ -66,6 +66,27 @@ def test_tracking_warm_starts_consecutive_frames(rec):
     assert np.linalg.norm(a.persons[0].vertices - b.persons[0].vertices, axis=1).mean() < 0.03
 
 
+def test_tracking_fits_the_pose_at_the_mean_of_sampled_shapes():
+    """A new track keeps its cold fit's shape; every n-th tracked frame adds a shape
+    sample, and the frames after it are fitted at the samples' mean."""
+    rec = Reconstructor(PipelineConfig(device='cpu', shape_sample_every=2))
+    f = _frame(rec, 3)
+    rng = np.random.default_rng(0)
+    shapes = []
+    for n in range(6):  # the same body, new sensor noise in each frame
+        d = np.where(f['depth'] > 0, f['depth'] + rng.normal(0, 0.01, f['depth'].shape), 0)
+        r = rec.process(d.astype(np.float32), f['K'], stamp_ns=(1 + n) * 33_000_000)
+        assert r.persons[0].tracked == (n > 0)
+        shapes.append(r.persons[0].params.shape)
+    assert rec._shapes[1] == 2  # tracked frames 2 and 4 were sampled
+    np.testing.assert_array_equal(shapes[1], shapes[0])  # the cold fit's, until sampled
+    np.testing.assert_array_equal(shapes[2], shapes[1])
+    assert np.abs(shapes[3] - shapes[0]).max() > 1e-4  # the first sample's
+    np.testing.assert_allclose(shapes[5], rec._shapes[0] / 2, atol=1e-6)  # the mean
+    rec.reset()
+    assert rec._shapes is None
+
+
 def test_tracking_resets_when_the_person_leaves_or_the_track_is_lost(rec):
     f, g = _frame(rec, 3), _frame(rec, 9)
     rec.reset()
