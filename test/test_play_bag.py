@@ -161,7 +161,7 @@ def test_play_bag_plain(rclpy_context, bag):
 
 def test_play_bag_clock(rclpy_context, bag):
     """--clock: /clock carries the bag's time, never going backwards, from the first
-    message's time to the last's."""
+    message's time to the last's (stop 13's CI saw a late timer tick send it backwards)."""
     from rosbags.highlevel import AnyReader
     from rosgraph_msgs.msg import Clock
 
@@ -175,13 +175,15 @@ def test_play_bag_clock(rclpy_context, bag):
         with lock:
             got.append(msg.clock.sec * 1_000_000_000 + msg.clock.nanosec)
     node.create_subscription(Clock, '/clock', keep, QoSProfile(
-        depth=100, reliability=ReliabilityPolicy.RELIABLE))
+        depth=5000, reliability=ReliabilityPolicy.RELIABLE))
     ex = SingleThreadedExecutor(context=rclpy_context)
     ex.add_node(node)
     th = threading.Thread(target=lambda: _spin_quietly(ex), daemon=True)
     th.start()
     try:
-        code, summary, err = play(str(bag), '--topics', INFO, '--clock', '50',
+        # A fast timer (2 ms) makes late ticks common: a tick that fires after a
+        # message's due time must not stamp a time beyond that message's.
+        code, summary, err = play(str(bag), '--topics', INFO, '--clock', '500',
                                   '--wait-for-subscribers', '30', '--start-delay', '0.5')
         assert code == 0, err
         time.sleep(0.5)
@@ -196,6 +198,22 @@ def test_play_bag_clock(rclpy_context, bag):
         ex.shutdown(timeout_sec=2.0)
         th.join(5.0)
         node.destroy_node()
+
+
+def test_clock_tick_never_passes_the_next_message():
+    """A /clock timer tick that runs late (after the next message's due time, as on a
+    loaded CI machine) stamps that message's time, not a later one the message's own
+    /clock would then contradict; --pace holds it; before the first message, nothing."""
+    from smpl_depth_ros.tools.play_bag import clock_ns
+    t0, msg2 = 1_700_000_000_000_000_000, 1_700_000_000_033_333_333
+    clock = dict(t0=None, w0=10.0, hold=None, next=None)
+    assert clock_ns(clock, 10.5, 1.0) is None
+    clock.update(t0=t0, next=msg2)
+    assert clock_ns(clock, 10.010, 1.0) == t0 + 10_000_000  # on time: interpolated
+    assert clock_ns(clock, 10.0341, 1.0) == msg2  # late tick: capped at the next message
+    assert clock_ns(clock, 10.005, 2.0) == t0 + 10_000_000  # --rate scales bag time
+    clock['hold'] = t0
+    assert clock_ns(clock, 11.0, 1.0) == t0
 
 
 def _spin_quietly(ex):

@@ -96,6 +96,23 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def clock_ns(clock: dict, wall: float, rate: float) -> int | None:
+    """The bag time (ns) a /clock timer tick publishes at monotonic time `wall`.
+
+    `clock`: t0 (bag ns of the first message, None before it) played at wall time w0;
+    `hold` (ns) while --pace waits; `next`, the bag time of the message about to be
+    published, which the tick never passes: a tick that runs late, after that message's
+    due time, would otherwise stamp a later time than the message's own /clock and send
+    the clock backwards (seen in CI on a loaded machine).
+    """
+    if clock['t0'] is None:
+        return None
+    if clock['hold'] is not None:
+        return int(clock['hold'])
+    ns = clock['t0'] + round((wall - clock['w0']) * rate * 1e9)
+    return ns if clock['next'] is None else min(ns, int(clock['next']))
+
+
 class _Stop(Exception):
     pass
 
@@ -166,8 +183,11 @@ def main(argv=None) -> int:
             if not pubs:
                 raise ProcessBagError('nothing to play: no topic with an installed message '
                                       'type was selected')
-            # Bag time for /clock: t0 (ns) at wall time w0, or held at `hold` (ns).
-            clock = dict(t0=None, w0=0.0, hold=None)
+            # Bag time for /clock: t0 (ns) at wall time w0, or held at `hold` (ns); the
+            # timer never runs past `next`, the time of the message about to be published
+            # (a late timer tick would otherwise stamp a time that the message's own
+            # /clock then sends backwards).
+            clock = dict(t0=None, w0=0.0, hold=None, next=None)
             # Reliable publishers whose last messages must reach their subscribers (the
             # slow ones included) before exit.
             acked = list(pubs.values()) if args.qos == 'reliable' else []
@@ -179,10 +199,9 @@ def main(argv=None) -> int:
 
                 def publish_clock(ns=None):
                     if ns is None:
-                        if clock['t0'] is None:
+                        ns = clock_ns(clock, time.monotonic(), args.rate)
+                        if ns is None:
                             return
-                        ns = clock['hold'] if clock['hold'] is not None else clock['t0'] + \
-                            int((time.monotonic() - clock['w0']) * args.rate * 1e9)
                     msg = Clock()
                     msg.clock.sec, msg.clock.nanosec = divmod(int(ns), 1_000_000_000)
                     clock_pub.publish(msg)
@@ -263,6 +282,7 @@ def main(argv=None) -> int:
                     if t0_bag is None:
                         t0_bag = t_bag
                         clock.update(t0=t_bag, w0=w0)
+                    clock['next'] = t_bag
                     due = w0 + (t_bag - t0_bag) * 1e-9 / args.rate
                     spin_for(max(0.0, due - time.monotonic()))
                     publish_clock(t_bag)
