@@ -28,6 +28,20 @@ def test_evaluate_writes_table_ii_json(bag, tmp_path):
     assert (tmp_path / 'fig' / 'fig3_0000.png').exists()
 
 
+def test_evaluate_pipeline_parameters(bag, tmp_path, capsys):
+    """-p NAME=VALUE reaches the pipeline (process_bag's names) and is recorded; a
+    misspelt name is an error, not a silently ignored option."""
+    out = tmp_path / 'eval.json'
+    assert evaluate.main([bag, '--no-ablation', '--frames', '1', '--tracking',
+                          '-p', 'tracking=false', '-p', 'fit.iterations=2',
+                          '--json', str(out)]) == 0
+    res = json.loads(out.read_text())
+    assert res['params'] == {'tracking': False, 'fit.iterations': 2}
+    assert res['tracking'] is False and res['frames'] == 1
+    assert evaluate.main([bag, '-p', 'fit.iteratons=2']) == 2
+    assert 'fit.iteratons' in capsys.readouterr().err
+
+
 def test_benchmark_fit_writes_json(bag, tmp_path):
     out = tmp_path / 'fit.json'
     assert benchmark.main(['fit', bag, '--frames', '2', '--lbfgs-frames', '1',

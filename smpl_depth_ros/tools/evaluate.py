@@ -1,6 +1,7 @@
 """`evaluate`: the full pipeline on a synthetic bag + its `.gt.npz`, paper Table I/II style.
 
     evaluate BAG [--frames 200] [--tracking] [--json out.json] [--figures DIR]
+                 [-p NAME=VALUE ...]   # pipeline parameters, as for process_bag
 
 Rows (paper Table II ablation, same frames):
   gt_joints+fit      fit to the ground-truth 3D joints only (row 1)
@@ -71,6 +72,9 @@ def main(argv=None) -> int:
     ap.add_argument('--flip-tta', action='store_true',
                     help='flip test-time augmentation (PipelineConfig.flip_tta) for both '
                     'networks')
+    ap.add_argument('-p', '--param', action='append', default=[], metavar='NAME=VALUE',
+                    help="pipeline parameter (repeatable, process_bag's names), e.g. "
+                    '-p shape_sample_every=0 -p fit.tangent_weight=1.0')
     ap.add_argument('--json', default=None, help='write the figures here')
     ap.add_argument('--figures', default=None, help='write Fig. 3/4-style PNGs here')
     ap.add_argument('--figure-frames', default='0', help='comma-separated frame indices')
@@ -86,10 +90,19 @@ def main(argv=None) -> int:
     from smpl_depth_ros.pipeline import Reconstructor
     from smpl_depth_ros.types import InputError
 
+    from smpl_depth_ros.offline import (ProcessBagError, config_from_params,
+                                        parse_param_overrides)
+
     gt = _load_gt(args.bag, args.gt)
     cfg = PipelineConfig(backend=str(gt['body_model']), device=args.device,
                          tracking=args.tracking, weights_path=args.weights,
                          flip_tta=args.flip_tta)
+    try:
+        overrides = parse_param_overrides(args.param)
+        cfg, _, _ = config_from_params(overrides, base=cfg)
+    except ProcessBagError as e:
+        print(f'evaluate: error: {e}', file=sys.stderr)
+        return 2
     rec = Reconstructor(cfg)
     body = rec.body
     canon = body.canonical_vertices()
@@ -170,8 +183,9 @@ def main(argv=None) -> int:
         print(file=sys.stderr)
     table = {k: _summ(v, n) for k, v in rows.items()}
     main_row = table['double_unet+fit']
-    out = dict(main_row, bag=args.bag, tracking=args.tracking, device=args.device,
-               weights=args.weights or 'shipped', flip_tta=args.flip_tta,
+    out = dict(main_row, bag=args.bag, tracking=cfg.tracking, device=args.device,
+               weights=args.weights or 'shipped', flip_tta=cfg.flip_tta,
+               params=overrides,
                body_model=body.name, ablation=table)
     print(f'{"method":18s} {"PVE mm":>8s} {"PVE p50":>8s} {"PA-PVE":>8s} {"MPJPE":>8s} {"mIoU":>6s} '
           f'{"mIoU@net":>8s} '
