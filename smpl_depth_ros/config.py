@@ -67,6 +67,16 @@ class PipelineConfig:
     shape_sample_every: int = 5       # tracking: every n-th tracked frame also fits the
                                       # shape; tracked frames fit the pose at the mean of
                                       # these samples (0: keep the cold fit's shape)
+    segmentation: str = 'model'       # published labels: 'model' (each of the person's
+                                      # pixels takes the part of its nearest fitted vertex:
+                                      # the network's body pixels, and those within
+                                      # model_label_margin_m of the fitted mesh) or
+                                      # 'network' (the network's labels as they are)
+    model_label_margin_m: float = 0.03  # 'model': pixels the network called background
+                                      # join the person this close to the fitted mesh
+    model_label_keep_network_m: float = 0.01  # 'model': a body pixel keeps the network's
+                                      # part when a vertex of it is this close to being its
+                                      # nearest (0: the fit's part everywhere)
     reject_residual_m: float = 0.09   # candidates whose fit leaves a larger median residual
                                       # are not reported as persons
     fit: FitConfig = field(default_factory=FitConfig)

@@ -190,6 +190,9 @@ def config_from_params(params: dict[str, Any], base: PipelineConfig | None = Non
     out = PipelineConfig(**core, fit=FitConfig(**fit))
     if out.device not in ('auto', 'cpu', 'cuda'):
         raise ProcessBagError(f"device must be 'auto', 'cpu' or 'cuda', got {out.device!r}")
+    if out.segmentation not in ('model', 'network'):
+        raise ProcessBagError("segmentation must be 'model' or 'network', got "
+                              f'{out.segmentation!r}')
     if not out.depth_min < out.depth_max:
         raise ProcessBagError(f'depth_min ({out.depth_min}) must be smaller than depth_max '
                               f'({out.depth_max})')

@@ -18,11 +18,13 @@ from smpl_depth_ros.config import PipelineConfig
 from smpl_depth_ros.fit import Fitter, backproject  # noqa: F401  (re-exported)
 from smpl_depth_ros.fit.freespace import FreeSpace
 from smpl_depth_ros.net.infer import CorrespondenceNet
-from smpl_depth_ros.net.preprocess import (crop_depth, find_persons, network_input,
-                                           split_side_by_side)
+from smpl_depth_ros.net.preprocess import (NEAR_RANGE, crop_depth, find_persons,
+                                           network_input, split_side_by_side)
 from smpl_depth_ros.types import FrameResult, InputError, PersonResult
 
 MIN_BODY_PIXELS = 60  # network-foreground crop pixels needed to attempt a fit
+MODEL_LABEL_POINTS = 8000  # segmentation 'model': pixels labelled per person, at most ~
+SAME_SURFACE_M = 0.03  # ... the others take their cell's part when this close in depth
 
 
 def resolve_device(name: str) -> torch.device:
@@ -79,6 +81,7 @@ class Reconstructor:
         parts = self.body.part_labels.cpu().numpy()
         valid = self.body.valid_vertices.cpu().numpy()
         self._part_of_vertex = parts
+        self._valid_vertex_ids = np.flatnonzero(valid)
         self._part_vertices = [np.flatnonzero((parts == p) & valid)
                                for p in range(int(parts.max()) + 1)]
         self._track = None  # (FitResult, stamp_ns) of the tracked person
@@ -119,12 +122,15 @@ class Reconstructor:
                              max_persons=max(cfg.max_persons, 1) + 2)
         t1 = time.perf_counter()
         labels_full = np.zeros(d.shape, np.uint8)
+        network_full = (np.zeros(d.shape, np.uint8) if cfg.segmentation == 'model'
+                        else labels_full)
         timings = dict(preprocess=(t1 - t0) * 1e3, network=0.0, correspondence=0.0, fit=0.0)
         if not crops:
             self.reset()
             raise InputError('no_person', f'no person found between {cfg.depth_min:.2f} and '
                              f'{cfg.depth_max:.2f} m')
-        persons = self._persons(d, K, list(crops), stamp_ns, timings, labels_full)
+        persons = self._persons(d, K, list(crops), stamp_ns, timings, labels_full,
+                                network_full)
         if not persons:
             # Second look: none of the candidates was a person, but a person standing
             # against a wall may be hidden in a blob too big for one: peel its planes.
@@ -133,17 +139,21 @@ class Reconstructor:
                                  max_persons=max(cfg.max_persons, 1) + 2, peel=True)
             timings['preprocess'] += (time.perf_counter() - tp) * 1e3
             if [int(c.mask.sum()) for c in again] != [int(c.mask.sum()) for c in crops]:
-                persons = self._persons(d, K, again, stamp_ns, timings, labels_full)
+                persons = self._persons(d, K, again, stamp_ns, timings, labels_full,
+                                        network_full)
         if not persons:
             self.reset()
             raise InputError('no_person', 'person candidates found, but the network '
                              'segmented no body in them')
         timings['total'] = (time.perf_counter() - t0) * 1e3
-        return FrameResult(persons=persons, labels=labels_full, timings_ms=timings)
+        return FrameResult(persons=persons, labels=labels_full, timings_ms=timings,
+                           network_labels=network_full)
 
-    def _persons(self, d, K, crops, stamp_ns, timings, labels_full) -> list[PersonResult]:
+    def _persons(self, d, K, crops, stamp_ns, timings, labels_full, network_full
+                 ) -> list[PersonResult]:
         """Run the network on the candidates and fit them, until max_persons are found
-        (see `process`); writes their labels into labels_full."""
+        (see `process`); writes their labels into labels_full (as `segmentation` says)
+        and the network's into network_full."""
         cfg = self.config
         persons = []
         split_done: set[int] = set()  # halves of split candidates are not split again
@@ -220,7 +230,10 @@ class Reconstructor:
                 if not tracked:  # a new track keeps the cold fit's shape until sampled
                     self._shapes = [np.zeros(len(fit.params.shape)), 0, 0]
             timings['fit'] += (time.perf_counter() - tf) * 1e3
-            mask = self._paste_labels(labels_full, crop, lab[i], d)
+            tl = time.perf_counter()
+            mask = self._paste_labels(labels_full, crop, lab[i], d, K, fit.vertices,
+                                      network_full)
+            timings['labels'] = timings.get('labels', 0.0) + (time.perf_counter() - tl) * 1e3
             if not persons:
                 self._track_mask = mask if self._track is not None else None
             persons.append(PersonResult(
@@ -340,10 +353,19 @@ class Reconstructor:
             return 1.0
         return min(1.0, float(crop.mask.sum()) / max(float(valid.sum()) * crop.scale ** 2, 1.0))
 
-    @staticmethod
-    def _paste_labels(labels_full, crop, lab, depth) -> np.ndarray:
-        """Write the crop's body labels into the full image (valid pixels of this person,
-        others' blobs excluded); returns this person's (H, W) mask."""
+    def _paste_labels(self, labels_full, crop, lab, depth, K, vertices, network_full
+                      ) -> np.ndarray:
+        """Write this person's labels into the full image and return its (H, W) mask.
+
+        The person's pixels are the valid ones in its crop window within NEAR_RANGE of its
+        median depth, others' blobs excluded. `network_full` gets the network's labels
+        (nearest-neighbour from the crop) where they say body. With segmentation 'model'
+        (the default) `labels_full` gets, on those pixels and on the ones within
+        `model_label_margin_m` of the fitted mesh (body the network missed: a hand, an
+        arm's edge), the part of the nearest fitted vertex: the fit, which draws on all
+        the frame's pixels and the body's shape, puts part borders where the body has
+        them (val_s2: mIoU 0.752 -> 0.82; the network's figure is kept beside it).
+        """
         H, W = labels_full.shape
         u0, v0 = max(int(np.floor(crop.u0)), 0), max(int(np.floor(crop.v0)), 0)
         u1 = min(int(np.ceil(crop.u0 + crop.scale * crop.size)), W)
@@ -357,9 +379,86 @@ class Reconstructor:
                     crop.size - 1)
         v = lab[np.ix_(i, j)]
         dw = depth[v0:v1, u0:u1]
-        keep = (v > 0) & (dw > 0) & (np.abs(dw - crop.median_depth) < 1.0)
+        region = (dw > 0) & (np.abs(dw - crop.median_depth) < NEAR_RANGE)
         if crop.exclude is not None:
-            keep &= ~crop.exclude[v0:v1, u0:u1]
-        labels_full[v0:v1, u0:u1][keep] = v[keep]
+            region &= ~crop.exclude[v0:v1, u0:u1]
+        keep = (v > 0) & region
+        network_full[v0:v1, u0:u1][keep] = v[keep]
+        if self.config.segmentation == 'model':
+            keep, v = self._model_labels(region, keep, v, dw, K, u0, v0, vertices)
+            labels_full[v0:v1, u0:u1][keep] = v[keep]
         m[v0:v1, u0:u1] = keep
         return m
+
+    def _model_labels(self, region, fg, net, dw, K, u0, v0, vertices):
+        """(mask, labels) of a window from the fitted mesh: `fg` pixels and the `region`
+        ones within model_label_margin_m of a fitted vertex, each with the part of its
+        nearest vertex, except where the network's part `net` has a vertex within
+        model_label_keep_network_m as near (at a part border the fit is not sharper
+        than that).
+
+        Large windows are labelled on a sub-grid of about MODEL_LABEL_POINTS pixels
+        first; a pixel then takes the label of the four cells around it when they agree
+        and its depth is on their surface, and is labelled on its own otherwise (part borders and silhouettes stay exact, at a bounded cost).
+        """
+        tree = cKDTree(vertices[self._valid_vertex_ids])
+        st = max(1, int(np.ceil(np.sqrt(np.count_nonzero(region) / MODEL_LABEL_POINTS))))
+        if st == 1:
+            rr, cc = np.nonzero(region)
+            out = np.zeros(fg.shape, np.uint8)
+            out[rr, cc] = self._label_pixels(rr, cc, dw, fg, net, K, u0, v0, vertices, tree)
+            return out > 0, out
+        h, w = region.shape
+        rr, cc = np.nonzero(region[::st, ::st])
+        coarse = np.zeros(((h + st - 1) // st, (w + st - 1) // st), np.uint8)  # 0: none
+        coarse[rr, cc] = self._label_pixels(rr * st, cc * st, dw, fg, net, K, u0, v0,
+                                            vertices, tree)
+        # A pixel between four cells that carry the same label (0: not the person's, or
+        # no depth), on their surface, takes it (agreement found on the sub-grid).
+        pad = np.pad(coarse, ((0, 1), (0, 1)), mode='edge')
+        agree = (coarse == pad[1:, :-1]) & (coarse == pad[:-1, 1:]) & (coarse == pad[1:, 1:])
+
+        def up(a):
+            return np.repeat(np.repeat(a, st, 0), st, 1)[:h, :w]
+        c = up(coarse)
+        same = up(agree) & (np.abs(dw - up(dw[::st, ::st])) < SAME_SURFACE_M)
+        out = np.where(same & region, c, 0).astype(np.uint8)
+        rr, cc = np.nonzero(region & ~same)
+        out[rr, cc] = self._label_pixels(rr, cc, dw, fg, net, K, u0, v0, vertices, tree)
+        return out > 0, out
+
+    def _label_pixels(self, rr, cc, dw, fg, net, K, u0, v0, vertices, tree):
+        """(N,) part of the window pixels (rr, cc) from the fitted mesh (0: not the
+        person's); see _model_labels."""
+        cfg = self.config
+        margin = float(cfg.model_label_margin_m)
+        ids = self._valid_vertex_ids
+        z = dw[rr, cc].astype(np.float64)
+        pts = np.stack([(cc + u0 - K[0, 2]) * z / K[0, 0], (rr + v0 - K[1, 2]) * z / K[1, 1],
+                        z], 1)
+        isfg = fg[rr, cc]
+        part = np.zeros(len(pts), np.int64)
+        if isfg.any():
+            q = pts[isfg]
+            dist, idx = tree.query(q)
+            pf = self._part_of_vertex[ids[idx]]
+            nf = net[rr[isfg], cc[isfg]].astype(np.int64)
+            keep_net = float(cfg.model_label_keep_network_m)
+            if keep_net > 0:
+                for p in np.unique(nf[pf != nf]):
+                    vi = self._part_vertices[p]
+                    m = np.flatnonzero((nf == p) & (pf != nf))
+                    if len(vi) and len(m):
+                        dp = cKDTree(vertices[vi]).query(q[m])[0]
+                        pf[m[dp <= dist[m] + keep_net]] = p
+            part[isfg] = pf
+        rest = np.flatnonzero(~isfg)
+        if margin > 0 and len(rest):
+            lo, hi = vertices.min(0) - margin, vertices.max(0) + margin
+            q = pts[rest]
+            rest = rest[np.all((q > lo) & (q < hi), axis=1)]
+            if len(rest):
+                dist, idx = tree.query(pts[rest], distance_upper_bound=margin)
+                ok = np.isfinite(dist)
+                part[rest[ok]] = self._part_of_vertex[ids[idx[ok]]]
+        return part

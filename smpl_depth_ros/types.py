@@ -64,8 +64,12 @@ class FrameResult:
         persons: most central person first (may be empty: no person found).
         labels: (H, W) uint8 part class ids at input resolution (0 = background).
         timings_ms: stage -> milliseconds (preprocess, network, correspondence, fit, total).
+        network_labels: (H, W) uint8, the network's own labels (the same array as
+            `labels` with segmentation 'network'; with 'model', `labels` come from the
+            fitted mesh).
     """
 
     persons: list[PersonResult]
     labels: np.ndarray
     timings_ms: dict[str, float] = field(default_factory=dict)
+    network_labels: np.ndarray | None = None

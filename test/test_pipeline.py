@@ -148,3 +148,37 @@ def test_real_kinect_frame_several_people(rec):
         z = depth[r, c]
         pts = np.stack([(c - 319.5) * z / 525.0, (r - 239.5) * z / 525.0, z], 1)
         assert np.median(point_to_surface(pts, p.vertices, rec.body.faces_numpy())) < 0.025
+
+
+def test_model_segmentation_beats_the_networks_labels(rec, monkeypatch):
+    """segmentation 'model' (default): the published labels come from the fitted mesh and
+    agree with the truth better than the network's own (kept in network_labels); the
+    sub-grid shortcut for large windows gives the exact labels up to a few pixels;
+    'network' publishes the network's labels as they are."""
+    import smpl_depth_ros.pipeline as pipeline
+    from smpl_depth_ros import evaluation as ev
+    conf_model, conf_net = np.zeros((15, 15)), np.zeros((15, 15))
+    frames = [_frame(rec, seed) for seed in (3, 9, 10)]
+    for f in frames:
+        rec.reset()
+        r = rec.process(f['depth'], f['K'])
+        valid = f['depth'] > 0
+        gt = np.where(valid, f['labels'], 0)
+        conf_model += ev.confusion(np.where(valid, r.labels, 0), gt)
+        conf_net += ev.confusion(np.where(valid, r.network_labels, 0), gt)
+        assert (r.labels[r.persons[0].mask] > 0).all()
+        assert not r.labels[~r.persons[0].mask].any()
+    assert ev.miou(conf_model) > ev.miou(conf_net) + 0.01, (ev.miou(conf_model),
+                                                            ev.miou(conf_net))
+    f = frames[0]
+    monkeypatch.setattr(pipeline, 'MODEL_LABEL_POINTS', 1000)  # a sub-grid of 3 to 5 px
+    rec.reset()
+    sub = rec.process(f['depth'], f['K']).labels
+    monkeypatch.setattr(pipeline, 'MODEL_LABEL_POINTS', 10 ** 9)  # every pixel on its own
+    rec.reset()
+    exact = rec.process(f['depth'], f['K']).labels
+    body = (exact > 0) | (sub > 0)
+    assert body.sum() > 1000 and (exact[body] == sub[body]).mean() > 0.99
+    net = Reconstructor(PipelineConfig(device='cpu', segmentation='network'), body=rec.body)
+    r = net.process(f['depth'], f['K'])
+    assert r.labels is r.network_labels and r.labels.any()

@@ -65,6 +65,16 @@ _CORE_DOC = {
     'tracking_max_gap_s': 'reset tracking after a longer gap between frame stamps (s)',
     'reject_residual_m': 'person candidates whose fit leaves a larger median residual are '
                          'not reported (m)',
+    'shape_sample_every': 'tracking: every n-th tracked frame also fits the shape; tracked '
+                          "frames fit the pose at the mean of these samples (0: keep the "
+                          "cold fit's shape)",
+    'segmentation': "published labels: 'model' (each person pixel takes the part of its "
+                    "nearest fitted vertex) or 'network' (the network's labels as they are)",
+    'model_label_margin_m': "'model' segmentation: pixels the network called background "
+                            'join the person this close to the fitted mesh (m)',
+    'model_label_keep_network_m': "'model' segmentation: a body pixel keeps the network's "
+                                  'part when a vertex of it is this close to being its '
+                                  'nearest (m; 0 = the fit decides everywhere)',
     'fit.lambda_data': 'fitting: data term weight',
     'fit.lambda_pose': 'fitting: joint-limit prior weight',
     'fit.lambda_pose_l2': 'fitting: pull of every joint towards rest',
@@ -112,6 +122,7 @@ READ_ONLY = {'backend', 'model_path', 'weights_path', 'qos_reliability', 'qos_de
 DEVICES = ('auto', 'cpu', 'cuda')
 BACKENDS = ('anny', 'smpl')
 SOLVERS = ('fast', 'lbfgs')
+SEGMENTATIONS = ('model', 'network')
 RELIABILITY = {'best_effort': ReliabilityPolicy.BEST_EFFORT,
                'reliable': ReliabilityPolicy.RELIABLE}
 _FLOAT_RANGES = {
@@ -119,10 +130,9 @@ _FLOAT_RANGES = {
     'mesh_decimation': (0.001, 1.0), 'mesh_lifetime_s': (0.0, 3600.0),
     'diagnostics_period_s': (0.05, 3600.0), 'warn_throttle_s': (0.0, 3600.0),
     'fit.gm_sigma': (1e-6, 10.0), 'fit.gm_sigma_start': (1e-6, 10.0),
-    'fit.min_joint_support': 'fitting: joints whose rotation moves fewer targets (in '
-                             'skinning weight) are held in place (unseen limbs; 0 = off)',
     'fit.lost_residual_m': (0.0, 10.0), 'fit.min_joint_support': (0.0, 1e6),
     'fit.flip_residual_m': (0.0, 10.0), 'reject_residual_m': (0.0, 10.0),
+    'model_label_margin_m': (0.0, 1.0), 'model_label_keep_network_m': (0.0, 1.0),
 }
 _INT_RANGES = {
     'qos_depth': (1, 1000), 'cpu_threads': (0, 1024), 'max_persons': (1, 100),
@@ -131,6 +141,7 @@ _INT_RANGES = {
     'fit.tracking_iterations': (0, 10_000), 'fit.lbfgs_iterations': (0, 10_000),
     'fit.max_points': (1, 10_000_000), 'fit.icp_rounds': (0, 100),
     'fit.min_cell_points': (1, 1_000_000), 'fit.tracking_icp_rounds': (0, 100),
+    'shape_sample_every': (0, 1_000_000),
 }
 
 
@@ -162,6 +173,7 @@ def _descriptor(name: str, default) -> ParameterDescriptor:
     else:
         d.type = ParameterType.PARAMETER_STRING
     choices = {'backend': BACKENDS, 'device': DEVICES, 'fit.solver': SOLVERS,
+               'segmentation': SEGMENTATIONS,
                'qos_reliability': tuple(RELIABILITY)}.get(name)
     if choices:
         d.additional_constraints = 'one of: ' + ', '.join(choices)
@@ -228,6 +240,9 @@ def validate(values: dict[str, Any]) -> str | None:
             return "device 'cuda' requested but CUDA is not available"
     if values['fit.solver'] not in SOLVERS:
         return f"fit.solver must be one of {SOLVERS}, got '{values['fit.solver']}'"
+    if values['segmentation'] not in SEGMENTATIONS:
+        return (f'segmentation must be one of {SEGMENTATIONS}, '
+                f"got '{values['segmentation']}'")
     if values['qos_reliability'] not in RELIABILITY:
         return (f"qos_reliability must be one of {tuple(RELIABILITY)}, "
                 f"got '{values['qos_reliability']}'")
