@@ -79,7 +79,8 @@ OUTPUTS = {
     'smpl_params': ('smpl_params', 'sensor_msgs/msg/JointState'),
     'skeleton': ('skeleton', 'visualization_msgs/msg/MarkerArray'),
 }
-TIMING_NAMES = ('preprocess', 'network', 'correspondence', 'fit', 'total', 'outputs')
+TIMING_NAMES = ('preprocess', 'network', 'correspondence', 'fit', 'labels', 'total',
+                'outputs')
 MESH_FORMATS = ('ply', 'obj', 'glb')
 # Node parameters that matter offline (the rest are about QoS and live diagnostics).
 NODE_OPTIONS = {'publish_mesh': True, 'publish_segmentation': True, 'publish_params': True,

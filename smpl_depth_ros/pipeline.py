@@ -124,7 +124,8 @@ class Reconstructor:
         labels_full = np.zeros(d.shape, np.uint8)
         network_full = (np.zeros(d.shape, np.uint8) if cfg.segmentation == 'model'
                         else labels_full)
-        timings = dict(preprocess=(t1 - t0) * 1e3, network=0.0, correspondence=0.0, fit=0.0)
+        timings = dict(preprocess=(t1 - t0) * 1e3, network=0.0, correspondence=0.0, fit=0.0,
+                       labels=0.0)
         if not crops:
             self.reset()
             raise InputError('no_person', f'no person found between {cfg.depth_min:.2f} and '
@@ -233,7 +234,7 @@ class Reconstructor:
             tl = time.perf_counter()
             mask = self._paste_labels(labels_full, crop, lab[i], d, K, fit.vertices,
                                       network_full)
-            timings['labels'] = timings.get('labels', 0.0) + (time.perf_counter() - tl) * 1e3
+            timings['labels'] += (time.perf_counter() - tl) * 1e3
             if not persons:
                 self._track_mask = mask if self._track is not None else None
             persons.append(PersonResult(
@@ -399,7 +400,8 @@ class Reconstructor:
 
         Large windows are labelled on a sub-grid of about MODEL_LABEL_POINTS pixels
         first; a pixel then takes the label of the four cells around it when they agree
-        and its depth is on their surface, and is labelled on its own otherwise (part borders and silhouettes stay exact, at a bounded cost).
+        and its depth is on their surface, and is labelled on its own otherwise (part
+        borders and silhouettes stay exact, at a bounded cost).
         """
         tree = cKDTree(vertices[self._valid_vertex_ids])
         st = max(1, int(np.ceil(np.sqrt(np.count_nonzero(region) / MODEL_LABEL_POINTS))))

@@ -63,7 +63,8 @@ class FrameResult:
     Attributes:
         persons: most central person first (may be empty: no person found).
         labels: (H, W) uint8 part class ids at input resolution (0 = background).
-        timings_ms: stage -> milliseconds (preprocess, network, correspondence, fit, total).
+        timings_ms: stage -> milliseconds (preprocess, network, correspondence, fit, labels,
+            total).
         network_labels: (H, W) uint8, the network's own labels (the same array as
             `labels` with segmentation 'network'; with 'model', `labels` come from the
             fitted mesh).
