@@ -365,7 +365,7 @@ class Reconstructor:
         `model_label_margin_m` of the fitted mesh (body the network missed: a hand, an
         arm's edge), the part of the nearest fitted vertex: the fit, which draws on all
         the frame's pixels and the body's shape, puts part borders where the body has
-        them (val_s2: mIoU 0.752 -> 0.82; the network's figure is kept beside it).
+        them (val_s2: mIoU 0.761 -> 0.839; the network's labels are kept beside them).
         """
         H, W = labels_full.shape
         u0, v0 = max(int(np.floor(crop.u0)), 0), max(int(np.floor(crop.v0)), 0)
@@ -403,18 +403,20 @@ class Reconstructor:
         and its depth is on their surface, and is labelled on its own otherwise (part
         borders and silhouettes stay exact, at a bounded cost).
         """
-        tree = cKDTree(vertices[self._valid_vertex_ids])
+        # One tree over the mesh, and one per part as needed, shared by both passes.
+        tree, part_trees = cKDTree(vertices[self._valid_vertex_ids]), {}
         st = max(1, int(np.ceil(np.sqrt(np.count_nonzero(region) / MODEL_LABEL_POINTS))))
         if st == 1:
             rr, cc = np.nonzero(region)
             out = np.zeros(fg.shape, np.uint8)
-            out[rr, cc] = self._label_pixels(rr, cc, dw, fg, net, K, u0, v0, vertices, tree)
+            out[rr, cc] = self._label_pixels(rr, cc, dw, fg, net, K, u0, v0, vertices, tree,
+                                             part_trees)
             return out > 0, out
         h, w = region.shape
         rr, cc = np.nonzero(region[::st, ::st])
         coarse = np.zeros(((h + st - 1) // st, (w + st - 1) // st), np.uint8)  # 0: none
         coarse[rr, cc] = self._label_pixels(rr * st, cc * st, dw, fg, net, K, u0, v0,
-                                            vertices, tree)
+                                            vertices, tree, part_trees)
         # A pixel between four cells that carry the same label (0: not the person's, or
         # no depth), on their surface, takes it (agreement found on the sub-grid).
         pad = np.pad(coarse, ((0, 1), (0, 1)), mode='edge')
@@ -426,12 +428,14 @@ class Reconstructor:
         same = up(agree) & (np.abs(dw - up(dw[::st, ::st])) < SAME_SURFACE_M)
         out = np.where(same & region, c, 0).astype(np.uint8)
         rr, cc = np.nonzero(region & ~same)
-        out[rr, cc] = self._label_pixels(rr, cc, dw, fg, net, K, u0, v0, vertices, tree)
+        out[rr, cc] = self._label_pixels(rr, cc, dw, fg, net, K, u0, v0, vertices, tree,
+                                         part_trees)
         return out > 0, out
 
-    def _label_pixels(self, rr, cc, dw, fg, net, K, u0, v0, vertices, tree):
+    def _label_pixels(self, rr, cc, dw, fg, net, K, u0, v0, vertices, tree, part_trees):
         """(N,) part of the window pixels (rr, cc) from the fitted mesh (0: not the
-        person's); see _model_labels."""
+        person's); see _model_labels. `part_trees`: part -> KD-tree of its vertices,
+        filled as needed."""
         cfg = self.config
         margin = float(cfg.model_label_margin_m)
         ids = self._valid_vertex_ids
@@ -451,7 +455,9 @@ class Reconstructor:
                     vi = self._part_vertices[p]
                     m = np.flatnonzero((nf == p) & (pf != nf))
                     if len(vi) and len(m):
-                        dp = cKDTree(vertices[vi]).query(q[m])[0]
+                        if p not in part_trees:
+                            part_trees[p] = cKDTree(vertices[vi])
+                        dp = part_trees[p].query(q[m])[0]
                         pf[m[dp <= dist[m] + keep_net]] = p
             part[isfg] = pf
         rest = np.flatnonzero(~isfg)
