@@ -25,6 +25,10 @@ from smpl_depth_ros.types import FrameResult, InputError, PersonResult
 MIN_BODY_PIXELS = 60  # network-foreground crop pixels needed to attempt a fit
 MODEL_LABEL_POINTS = 8000  # segmentation 'model': pixels labelled per person, at most ~
 SAME_SURFACE_M = 0.03  # ... the others take their cell's part when this close in depth
+_CORNER = 0.6  # barycentric weight of a triangle's corner samples (0.5 / 0.7: worse)
+_CORNER_BARY = np.array([[_CORNER, (1 - _CORNER) / 2, (1 - _CORNER) / 2],
+                         [(1 - _CORNER) / 2, _CORNER, (1 - _CORNER) / 2],
+                         [(1 - _CORNER) / 2, (1 - _CORNER) / 2, _CORNER]])
 
 
 def resolve_device(name: str) -> torch.device:
@@ -81,7 +85,18 @@ class Reconstructor:
         parts = self.body.part_labels.cpu().numpy()
         valid = self.body.valid_vertices.cpu().numpy()
         self._part_of_vertex = parts
+        # Segmentation 'model': the fitted surface is sampled at its vertices and at 3
+        # points per triangle near its corners, each sample labelled with its corner's
+        # part, so the nearest sample follows the parts' borders on the surface (each
+        # triangle split by its largest barycentric weight, as the renderer labels
+        # pixels) better than the nearest vertex (val_s2, true meshes: 0.933 -> 0.955).
         self._valid_vertex_ids = np.flatnonzero(valid)
+        faces = self.faces[valid[self.faces].all(1)]
+        self._label_faces = faces
+        self._label_parts = np.concatenate([parts[self._valid_vertex_ids],
+                                            parts[faces].reshape(-1)])
+        self._label_part_ids = [np.flatnonzero(self._label_parts == p)
+                                for p in range(int(parts.max()) + 1)]
         self._part_vertices = [np.flatnonzero((parts == p) & valid)
                                for p in range(int(parts.max()) + 1)]
         self._track = None  # (FitResult, stamp_ns) of the tracked person
@@ -403,20 +418,23 @@ class Reconstructor:
         and its depth is on their surface, and is labelled on its own otherwise (part
         borders and silhouettes stay exact, at a bounded cost).
         """
-        # One tree over the mesh, and one per part as needed, shared by both passes.
-        tree, part_trees = cKDTree(vertices[self._valid_vertex_ids]), {}
+        # One tree over the surface samples, and one per part as needed, shared by both
+        # passes.
+        samples = np.concatenate([vertices[self._valid_vertex_ids], np.einsum(
+            'sk,fkd->fsd', _CORNER_BARY, vertices[self._label_faces]).reshape(-1, 3)])
+        tree, part_trees = cKDTree(samples), {}
         st = max(1, int(np.ceil(np.sqrt(np.count_nonzero(region) / MODEL_LABEL_POINTS))))
         if st == 1:
             rr, cc = np.nonzero(region)
             out = np.zeros(fg.shape, np.uint8)
-            out[rr, cc] = self._label_pixels(rr, cc, dw, fg, net, K, u0, v0, vertices, tree,
+            out[rr, cc] = self._label_pixels(rr, cc, dw, fg, net, K, u0, v0, samples, tree,
                                              part_trees)
             return out > 0, out
         h, w = region.shape
         rr, cc = np.nonzero(region[::st, ::st])
         coarse = np.zeros(((h + st - 1) // st, (w + st - 1) // st), np.uint8)  # 0: none
         coarse[rr, cc] = self._label_pixels(rr * st, cc * st, dw, fg, net, K, u0, v0,
-                                            vertices, tree, part_trees)
+                                            samples, tree, part_trees)
         # A pixel between four cells that carry the same label (0: not the person's, or
         # no depth), on their surface, takes it (agreement found on the sub-grid).
         pad = np.pad(coarse, ((0, 1), (0, 1)), mode='edge')
@@ -428,17 +446,17 @@ class Reconstructor:
         same = up(agree) & (np.abs(dw - up(dw[::st, ::st])) < SAME_SURFACE_M)
         out = np.where(same & region, c, 0).astype(np.uint8)
         rr, cc = np.nonzero(region & ~same)
-        out[rr, cc] = self._label_pixels(rr, cc, dw, fg, net, K, u0, v0, vertices, tree,
+        out[rr, cc] = self._label_pixels(rr, cc, dw, fg, net, K, u0, v0, samples, tree,
                                          part_trees)
         return out > 0, out
 
-    def _label_pixels(self, rr, cc, dw, fg, net, K, u0, v0, vertices, tree, part_trees):
+    def _label_pixels(self, rr, cc, dw, fg, net, K, u0, v0, samples, tree, part_trees):
         """(N,) part of the window pixels (rr, cc) from the fitted mesh (0: not the
-        person's); see _model_labels. `part_trees`: part -> KD-tree of its vertices,
-        filled as needed."""
+        person's); see _model_labels. `samples`: the fitted surface's label samples,
+        `tree` over them; `part_trees`: part -> KD-tree of its samples, filled as
+        needed."""
         cfg = self.config
         margin = float(cfg.model_label_margin_m)
-        ids = self._valid_vertex_ids
         z = dw[rr, cc].astype(np.float64)
         pts = np.stack([(cc + u0 - K[0, 2]) * z / K[0, 0], (rr + v0 - K[1, 2]) * z / K[1, 1],
                         z], 1)
@@ -447,26 +465,26 @@ class Reconstructor:
         if isfg.any():
             q = pts[isfg]
             dist, idx = tree.query(q)
-            pf = self._part_of_vertex[ids[idx]]
+            pf = self._label_parts[idx]
             nf = net[rr[isfg], cc[isfg]].astype(np.int64)
             keep_net = float(cfg.model_label_keep_network_m)
             if keep_net > 0:
                 for p in np.unique(nf[pf != nf]):
-                    vi = self._part_vertices[p]
+                    vi = self._label_part_ids[p]
                     m = np.flatnonzero((nf == p) & (pf != nf))
                     if len(vi) and len(m):
                         if p not in part_trees:
-                            part_trees[p] = cKDTree(vertices[vi])
+                            part_trees[p] = cKDTree(samples[vi])
                         dp = part_trees[p].query(q[m])[0]
                         pf[m[dp <= dist[m] + keep_net]] = p
             part[isfg] = pf
         rest = np.flatnonzero(~isfg)
         if margin > 0 and len(rest):
-            lo, hi = vertices.min(0) - margin, vertices.max(0) + margin
+            lo, hi = samples.min(0) - margin, samples.max(0) + margin
             q = pts[rest]
             rest = rest[np.all((q > lo) & (q < hi), axis=1)]
             if len(rest):
                 dist, idx = tree.query(pts[rest], distance_upper_bound=margin)
                 ok = np.isfinite(dist)
-                part[rest[ok]] = self._part_of_vertex[ids[idx[ok]]]
+                part[rest[ok]] = self._label_parts[idx[ok]]
         return part
