@@ -26,6 +26,8 @@ class FitConfig:
     solver: str = 'fast'              # 'fast' (default) | 'lbfgs' (the paper's reference)
     iterations: int = 10              # cold-start iterations of the fast solver
     tracking_iterations: int = 3      # warm-start iterations
+    lambda_temporal: float = 0.0      # tracking: weight (per rad^2) of a joint's rotation
+                                      # away from the previous frame's
     lbfgs_iterations: int = 20        # the paper's reference solver
     lbfgs_lr: float = 0.6
     max_points: int = 1000            # per-vertex targets kept per frame (random subset)
@@ -72,8 +74,9 @@ class PipelineConfig:
                                       # the network's body pixels, and those within
                                       # model_label_margin_m of the fitted mesh) or
                                       # 'network' (the network's labels as they are)
-    model_label_margin_m: float = 0.03  # 'model': pixels the network called background
+    model_label_margin_m: float = 0.045  # 'model': pixels the network called background
                                       # join the person this close to the fitted mesh
+                                      # (not on a scene plane: pipeline.PLANE_M)
     model_label_keep_network_m: float = 0.01  # 'model': a body pixel keeps the network's
                                       # part when a vertex of it is this close to being its
                                       # nearest (0: the fit's part everywhere)

@@ -211,6 +211,25 @@ def test_free_space_marks_what_the_sensor_would_have_seen():
     assert len(FreeSpace(depth, K, ref_depth=2.0, box=(20, 10, 60, 70)).targets(verts)[0]) == 0
 
 
+def test_solid_planes_push_vertices_out_and_only_supporting_ones_count():
+    """A vertex 10 cm under the floor is pulled onto it (one 1 cm under is within the
+    tolerance, one above is free); free-space targets keep precedence. A plane counts as
+    solid for a person only when their observed points are in front of it."""
+    from smpl_depth_ros.fit.freespace import supporting_planes
+    K = np.array([[100.0, 0, 50], [0, 100.0, 40], [0, 0, 1]])
+    depth = np.full((80, 100), 4.0, np.float32)
+    floor = np.array([0.0, -1.0, 0.0, -1.0])  # y = 1 m below the camera, n up (-y)
+    fs = FreeSpace(depth, K, ref_depth=4.2, planes=[floor])
+    verts = np.array([[0.0, 1.1, 4.5], [0.2, 1.01, 4.5], [0.0, 0.5, 4.5]])
+    ids, tgt = fs.targets(verts)
+    assert list(ids) == [0] and np.allclose(tgt[0], [0.0, 1.0, 4.5])
+    assert len(FreeSpace(depth, K, ref_depth=4.2).targets(verts)[0]) == 0
+    standing = np.array([[0.0, y, 4.5] for y in np.linspace(-0.7, 0.99, 50)])
+    assert len(supporting_planes([floor], standing)) == 1
+    legs_below_a_table = np.concatenate([standing, [[0.0, 1.3, 4.5]] * 5])
+    assert supporting_planes([floor], legs_below_a_table) == []
+
+
 def test_free_space_moves_an_unseen_arm_out_of_sight(body):
     """Seen from the side, the far arm hidden behind the torso and no correspondences on
     it; the warm start has that arm raised into view. Nothing else moves it (the arm is

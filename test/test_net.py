@@ -231,6 +231,34 @@ def test_person_close_to_a_wall_is_peeled_off_it():
     assert rows[0] >= 145 and rows[-1] <= 405 and cols[0] >= 295 and cols[-1] <= 345
 
 
+def test_scene_planes_are_reported_facing_the_camera():
+    """A floor 1.2 m below a camera looking 15 deg down, a person-sized box in front of
+    it: the box is the candidate, and the floor comes back as its frame's plane
+    (n . x = offset in the camera frame, unit n towards the camera), its points on it;
+    the wall peeled off a person is reported too."""
+    K = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]])
+    H, W = 480, 640
+    t = np.radians(15.0)
+    # Floor y_world = -1.2 (world y up); camera optical frame: y down, tilted by t.
+    n_cam = np.array([0.0, -np.cos(t), -np.sin(t)])  # world up, in the camera frame
+    v, u = np.mgrid[0:H, 0:W]
+    ray = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones((H, W))], -1)
+    denom = ray @ n_cam  # the floor: n_cam . x = -1.2
+    z = np.where(denom < -1e-3, -1.2 / np.minimum(denom, -1e-3), 0.0)
+    d = np.where((z > 0) & (z < 6.0), z, 0.0).astype(np.float32)
+    d[120:330, 290:350] = 3.0  # a box at 3 m
+    cands = find_persons(d, K, 0.5, 6.0, min_pixels=300, max_persons=3)
+    assert len(cands) == 1 and abs(cands[0].median_depth - 3.0) < 0.05
+    (plane,) = cands[0].planes
+    assert plane[3] < 0 and np.allclose(plane[:3], n_cam, atol=0.03)
+    assert abs(plane[3] + 1.2) < 0.03
+    d2 = np.full((480, 640), 4.08, np.float32)
+    d2[150:400, 300:340] = 4.0
+    (c,) = find_persons(d2, K, 0.5, 6.0, min_pixels=300, max_persons=3)
+    wall = [p for p in c.planes if abs(p[2]) > 0.9]
+    assert len(wall) == 1 and wall[0][2] < 0 and abs(wall[0][3] + 4.08) < 0.03
+
+
 def test_peel_finds_a_person_at_a_wall_beside_a_person_sized_box():
     """The same wall scene with a box nearer the camera: the box is a person-sized
     candidate, so by default the wall blob is not peeled; with peel (the pipeline's second

@@ -150,6 +150,35 @@ def test_real_kinect_frame_several_people(rec):
         assert np.median(point_to_surface(pts, p.vertices, rec.body.faces_numpy())) < 0.025
 
 
+def test_model_segmentation_leaves_the_floor_under_the_feet(rec, monkeypatch):
+    """The margin of segmentation 'model' (pixels the network called background, near the
+    fitted mesh) does not take the floor a foot stands on: no such pixel lies within
+    PLANE_M of the frame's floor plane, whereas without the rule some do, and they are
+    background in the truth."""
+    import smpl_depth_ros.pipeline as pipeline
+    from smpl_depth_ros.net.preprocess import find_persons
+
+    m = pipeline.PLANE_M
+
+    def floor_pixels(f):
+        rec.reset()
+        r = rec.process(f['depth'], f['K'])
+        (plane, *_) = find_persons(f['depth'], f['K'], 0.5, 6.0, 400, 3)[0].planes
+        rr, cc = np.nonzero((r.labels > 0) & (r.network_labels == 0))
+        z = f['depth'][rr, cc].astype(np.float64)
+        K = f['K']
+        pts = np.stack([(cc - K[0, 2]) * z / K[0, 0], (rr - K[1, 2]) * z / K[1, 1], z], 1)
+        on = np.abs(pts @ plane[:3] - plane[3]) <= m
+        return on.sum(), (f['labels'][rr[on], cc[on]] == 0).mean() if on.any() else 1.0
+    frames = [_frame(rec, seed) for seed in (3, 9, 10)]
+    assert all(floor_pixels(f)[0] == 0 for f in frames)
+    monkeypatch.setattr(pipeline, 'PLANE_M', 0.0)  # the rule off
+    without = [floor_pixels(f) for f in frames]
+    on = [n for n, _ in without]
+    assert sum(on) > 20, without
+    assert np.mean([bg for n, bg in without if n]) > 0.5, without
+
+
 def test_model_segmentation_beats_the_networks_labels(rec, monkeypatch):
     """segmentation 'model' (default): the published labels come from the fitted mesh and
     agree with the truth better than the network's own (kept in network_labels); the

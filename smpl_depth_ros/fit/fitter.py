@@ -428,8 +428,8 @@ class Fitter:
     def fit(self, points, vertex_ids, init: BodyParams | None = None, *,
             solver: str | None = None, iterations: int | None = None,
             fix_shape: bool | None = None, weights=None,
-            targets_are_joints: bool = False, free_space: FreeSpace | None = None
-            ) -> FitResult:
+            targets_are_joints: bool = False, free_space: FreeSpace | None = None,
+            temporal_weight: float = 0.0) -> FitResult:
         """Fit to points with correspondences.
 
         Args:
@@ -444,6 +444,9 @@ class Fitter:
             free_space: the frame's free space (fit.freespace): vertices the sensor
                 would have seen are pulled to where they could hide
                 (cfg.free_space_weight; the fast solver only).
+            temporal_weight: with a warm start, weight (per rad^2) of every joint's
+                rotation away from init's (the fast solver only): tracking's temporal
+                prior (FitConfig.lambda_temporal).
 
         Returns:
             FitResult.
@@ -496,8 +499,10 @@ class Fitter:
             n = iterations or (cfg.tracking_iterations if warm else cfg.iterations)
             s0 = None if warm else cfg.gm_sigma_start
             start = state
+            anchor = (rot.copy(), float(temporal_weight)) if warm and temporal_weight > 0 \
+                else None
             state, en, iters, sq = self._levenberg_marquardt(
-                state, pts, ids, wts, targets_are_joints, n, fix_shape, s0)
+                state, pts, ids, wts, targets_are_joints, n, fix_shape, s0, anchor=anchor)
             if not warm and cfg.flip_restart and not targets_are_joints:
                 # Depth-only correspondences can confuse front and back: when the fit
                 # leaves a large residual, also try the init turned 180 deg about the
@@ -515,7 +520,7 @@ class Fitter:
                 # "in free space" and the pulls would only scramble the pose).
                 state, _, it2, sq = self._levenberg_marquardt(
                     state, pts, ids, wts, False, cfg.free_space_iterations, True, None,
-                    free_space)
+                    free_space, anchor=anchor)
                 iters += it2
         else:
             raise ValueError(f"unknown solver {solver!r} (expected 'fast', 'lbfgs' or 'none')")
@@ -589,7 +594,7 @@ class Fitter:
 
     def _levenberg_marquardt(self, state, pts, ids, wts, joints: bool, iterations: int,
                              fix_shape: bool, sigma_start: float | None = None,
-                             free: FreeSpace | None = None):
+                             free: FreeSpace | None = None, anchor=None):
         """IRLS / Levenberg-Marquardt on the robust objective.
 
         Rotations are updated multiplicatively (R_j <- exp(delta_j) R_j) with the analytic
@@ -597,7 +602,9 @@ class Fitter:
         of the rest geometry (re-linearised when it moves: anny's phenotype mapping is
         piecewise linear). With `free`, vertices in free space are pulled (L2,
         cfg.free_space_weight per mesh vertex) to their nearest hiding place, found again
-        at every evaluated state (ICP-style). Returns (state, energy at the final scale,
+        at every evaluated state (ICP-style). With `anchor` = (rotations (P + 1, 3, 3),
+        weight), every joint's rotation away from the anchor's costs weight * angle^2 (the
+        temporal prior of tracking). Returns (state, energy at the final scale,
         iterations, squared residuals at that state).
         """
         cfg, rig = self.cfg, self.rig
@@ -647,6 +654,9 @@ class Fitter:
             en, _, aa, viol = self._energy_terms(state, sq, wts, sigma)
             if fterm is not None:
                 en += fterm[0]
+            if anchor is not None:
+                dr = _log(state[0] @ anchor[0].transpose(0, 2, 1))  # (P + 1, 3)
+                en += anchor[1] * float((dr ** 2).sum())
             if prev is not None and en > prev[0]:
                 # Reject the step: restore the last accepted state and damp more (LM).
                 en, state, (sq, e, G, x, WQ, nrm, facing, fterm), aa, viol = prev
@@ -695,6 +705,10 @@ class Fitter:
                     b = 3 + 3 * j
                     H[b:b + 3, b:b + 3] += FREEZE * np.eye(3)
             g[3:n_rot] += gp.reshape(-1)
+            if anchor is not None:  # d log(exp(delta) R R0^T) / d delta ~ I near R0
+                dr = _log(rot @ anchor[0].transpose(0, 2, 1))
+                H[:n_rot, :n_rot] += anchor[1] * np.eye(n_rot)
+                g[:n_rot] += anchor[1] * dr.reshape(-1)
             if free_shape:
                 inv2 = lam_s / rig.shape_std ** 2
                 H[n_rot + 3:, n_rot + 3:] += np.diag(inv2)
@@ -718,6 +732,8 @@ class Fitter:
         en = self._energy_terms(state, sq, wts, s_end)[0]
         if free:
             en += self._free_space_term(state, prob, G, x, free)[0]
+        if anchor is not None:
+            en += anchor[1] * float((_log(state[0] @ anchor[0].transpose(0, 2, 1)) ** 2).sum())
         if prev is not None and prev_sigma == s_end and en > prev[0]:
             en, state, sq = prev[0], prev[1], prev[2][0]
         return state, en, it, sq

@@ -12,6 +12,10 @@ pulls it there. A vertex in front of the person's own surface is left alone: pus
 back along its ray was measured to hurt (val_s2 44.0 -> 50.8 mm) - a hand fitted a few
 centimetres beside the observed hand lands on the chest's pixels, and the right move
 is sideways, not behind the chest.
+
+Solid scene planes (`planes`: the floor a person stands on, a wall they lean on) bound
+the body too: a vertex beyond such a plane is inside it - occlusion cannot explain it -
+and is pulled onto the plane (val_s2: a crouching leg fitted 35 cm into the floor).
 """
 from __future__ import annotations
 
@@ -36,11 +40,17 @@ class FreeSpace:
         box: optional (u0, v0, u1, v1) pixel window around the person: only there is
             free space looked for, and hiding places (the rest of the image is not
             looked at), for speed.
+        planes: solid planes the body cannot pass, (4,) arrays (n, offset) with the body
+            on the side n . x > offset (preprocess.Crop.planes, those with the person's
+            points on the camera's side: see `supporting_planes`).
+        plane_tolerance: metres a vertex may lie beyond a plane before it is pulled
+            (sensor noise of the plane, soft tissue at the contact).
     """
 
     def __init__(self, depth: np.ndarray, K: np.ndarray, ref_depth: float,
                  margin: float = 0.1, tolerance_px: float = 2.0, stride: int = 2,
-                 box: tuple[float, float, float, float] | None = None):
+                 box: tuple[float, float, float, float] | None = None,
+                 planes=(), plane_tolerance: float = 0.03):
         self.depth = np.nan_to_num(np.asarray(depth, np.float32), nan=0.0, posinf=0.0,
                                    neginf=0.0)
         self.K = np.asarray(K, np.float64)
@@ -56,6 +66,8 @@ class FreeSpace:
         self._u0, self._v0 = max(int(box[0]) // s, 0) * s, max(int(box[1]) // s, 0) * s
         self._u1, self._v1 = min(int(np.ceil(box[2])), W), min(int(np.ceil(box[3])), H)
         self._nearest = None  # distance transform, computed on first need
+        self.planes = [np.asarray(p, np.float64) for p in planes]
+        self.plane_tolerance = plane_tolerance
 
     def _hiding(self):
         """(distance, row, col) on the stride grid: each cell's distance to, and nearest,
@@ -85,8 +97,21 @@ class FreeSpace:
 
         Returns:
             (ids (M,), targets (M, 3)): each target lies at its vertex's depth, on the
-            nearest pixel where the vertex would be hidden.
+            nearest pixel where the vertex would be hidden; for a vertex beyond a solid
+            plane, its projection onto the plane.
         """
+        ids, tgt = self._seen_through(verts)
+        for pl in self.planes:
+            sd = verts @ pl[:3] - pl[3]
+            inside = np.flatnonzero(sd < -self.plane_tolerance)
+            inside = inside[~np.isin(inside, ids)]
+            if len(inside):
+                ids = np.concatenate([ids, inside])
+                tgt = np.concatenate([tgt, verts[inside] - sd[inside, None] * pl[:3]])
+        return ids, tgt
+
+    def _seen_through(self, verts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The vertices in free space and their hiding places (see `targets`)."""
         K, d = self.K, self.depth
         z = verts[:, 2]
         zs = np.where(z > 1e-3, z, 1.0)
@@ -106,3 +131,15 @@ class FreeSpace:
         tgt = np.stack([(tx[gy, gx] - K[0, 2]) * zt / K[0, 0],
                         (ty[gy, gx] - K[1, 2]) * zt / K[1, 1], zt], 1)
         return ids, tgt
+
+
+def supporting_planes(planes, points: np.ndarray, tolerance: float = 0.03,
+                      max_fraction: float = 0.01) -> list:
+    """The scene planes (n, offset) a person's observed `points` (N, 3) lie in front of
+    (at most `max_fraction` of them more than `tolerance` beyond): the floor under them,
+    a wall behind them. A table top with the legs seen below it is not one; legs hidden
+    entirely under a table would be taken for legs in the floor (no table is told from
+    a floor by its plane alone)."""
+    pts = np.asarray(points, np.float64)
+    return [p for p in planes
+            if len(pts) and np.mean(pts @ p[:3] - p[3] < -tolerance) <= max_fraction]

@@ -59,6 +59,9 @@ class Crop:
             while this person's own self-occluding parts (separate blobs, smaller) stay.
         behind: the blob lies inside a nearer candidate's box and at least 0.3 m behind
             it: most likely background seen between its legs or arms; ranked last.
+        planes: the scene planes removed in the frame (the floor, a table top; walls
+            peeled off a person), each a (4,) array (n, offset): n . x = offset in the
+            camera frame, unit n pointing to the camera's side.
     """
 
     u0: float
@@ -69,6 +72,7 @@ class Crop:
     mask: np.ndarray | None = None
     exclude: np.ndarray | None = None  # (H, W) bool: other (larger) persons' blobs
     behind: bool = False  # seen through a gap of a nearer candidate (see find_persons)
+    planes: tuple = ()  # the frame's scene planes (see find_persons)
 
     def pixel_grid(self) -> tuple[np.ndarray, np.ndarray]:
         """Full-image (rows, cols) float centres of the crop pixels: (S,), (S,)."""
@@ -181,11 +185,14 @@ def _pixel_points(rows, cols, z, K) -> np.ndarray:
 
 def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=2,
                    min_fraction=0.03, thresh=0.03, iters=1000, min_extent=1.0,
-                   min_up=0.75, sample=2000, presample=200, finalists=10) -> np.ndarray:
+                   min_up=0.75, sample=2000, presample=200, finalists=10,
+                   planes: list | None = None) -> np.ndarray:
     """Boolean mask of points that belong to none of the dominant planes.
 
     RANSAC over `iters` point triples per plane; hypotheses are scored preemptively: all on
-    `presample` random points, the best `finalists` on `sample` random points.
+    `presample` random points, the best `finalists` on `sample` random points. The planes
+    removed are appended to `planes` (when given) as (4,) arrays (n, offset), n . x =
+    offset, unit n towards the camera (the side the scene is seen from).
     """
     keep = np.ones(len(points), bool)
     n_all = len(points)
@@ -237,6 +244,9 @@ def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=2,
         if occupied.sum() < 0.35 * ((hi_u - lo_u) / 0.1 + 1) * ((hi_v - lo_v) / 0.1 + 1):
             break
         keep &= ~inl
+        if planes is not None:
+            n_b, off_b = (n[best], off[best]) if off[best] < 0 else (-n[best], -off[best])
+            planes.append(np.array([*n_b, off_b]))
     return keep
 
 
@@ -452,7 +462,8 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
     if len(r) < min_px:
         return []
     rng = np.random.default_rng(seed)
-    keep = _remove_planes(_pixel_points(r * s, c * s, d[r, c], K), rng)
+    planes: list = []
+    keep = _remove_planes(_pixel_points(r * s, c * s, d[r, c], K), rng, planes=planes)
     fg = np.zeros_like(valid)
     fg[valid] = keep
     edges = _depth_edges(depth, s)
@@ -470,7 +481,8 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
             z = float(np.median(d[rr, cc]))
             thresh = max(0.03, 2 * (0.0012 + 0.0019 * (z - 0.4) ** 2))
             on_plane = ~_remove_planes(_pixel_points(rr * s, cc * s, d[rr, cc], K), rng,
-                                       max_planes=3, min_up=-1.0, thresh=thresh)
+                                       max_planes=3, min_up=-1.0, thresh=thresh,
+                                       planes=planes)
             fg[rr[on_plane], cc[on_plane]] = False
             peeled = np.zeros_like(fg) if peeled is None else peeled
             peeled[rr[on_plane], cc[on_plane]] = True
@@ -487,6 +499,7 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
         peeled[np.minimum(np.arange(H) // s, peeled.shape[0] - 1)][
             :, np.minimum(np.arange(W) // s, peeled.shape[1] - 1)]
     for i, c in enumerate(crops):
+        c.planes = tuple(planes)
         others = [crops[j].mask for j in range(len(crops))
                   if j != i and sizes[j] >= 0.5 * sizes[i]]
         if wall is not None:

@@ -85,6 +85,8 @@ _CORE_DOC = {
     'fit.solver': "fitting solver: 'fast' or 'lbfgs'",
     'fit.iterations': 'fitting: cold-start iterations',
     'fit.tracking_iterations': 'fitting: warm-start iterations while tracking',
+    'fit.lambda_temporal': "fitting: tracking's temporal prior, weight (per rad^2) of a "
+                           "joint's rotation away from the previous frame's (0 = off)",
     'fit.lbfgs_iterations': 'fitting: L-BFGS iterations',
     'fit.lbfgs_lr': 'fitting: L-BFGS learning rate',
     'fit.max_points': 'fitting: per-vertex targets kept per frame',
@@ -133,6 +135,7 @@ _FLOAT_RANGES = {
     'fit.lost_residual_m': (0.0, 10.0), 'fit.min_joint_support': (0.0, 1e6),
     'fit.flip_residual_m': (0.0, 10.0), 'reject_residual_m': (0.0, 10.0),
     'model_label_margin_m': (0.0, 1.0), 'model_label_keep_network_m': (0.0, 1.0),
+    'fit.lambda_temporal': (0.0, 1e6),
 }
 _INT_RANGES = {
     'qos_depth': (1, 1000), 'cpu_threads': (0, 1024), 'max_persons': (1, 100),
