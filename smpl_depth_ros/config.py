@@ -26,7 +26,7 @@ class FitConfig:
     solver: str = 'fast'              # 'fast' (default) | 'lbfgs' (the paper's reference)
     iterations: int = 10              # cold-start iterations of the fast solver
     tracking_iterations: int = 3      # warm-start iterations
-    lambda_temporal: float = 0.0      # tracking: weight (per rad^2) of a joint's rotation
+    lambda_temporal: float = 3e-5     # tracking: weight (per rad^2) of a joint's rotation
                                       # away from the previous frame's
     lbfgs_iterations: int = 20        # the paper's reference solver
     lbfgs_lr: float = 0.6
