@@ -1,6 +1,7 @@
 """The figure-producing commands run end to end and write the documented JSON keys."""
 import json
 
+import numpy as np
 import pytest
 
 from smpl_depth_ros.tools import benchmark, evaluate, synth_bag
@@ -25,6 +26,11 @@ def test_evaluate_writes_table_ii_json(bag, tmp_path):
     assert set(res['ablation']) == {'gt_joints+fit', 'single_unet+fit', 'double_unet+fit',
                                     'gt_corr+fit'}
     assert res['ablation']['gt_corr+fit']['pve_mm'] < 60
+    for name, row in res['ablation'].items():  # the per-frame PVE behind each mean
+        frames = row['pve_mm_frames']
+        assert len(frames) == 3 - row['failures'] and frames[0][0] >= 0, name
+        assert abs(np.mean([v for _, v in frames]) - row['pve_mm']) < 0.01, name
+    assert 'pve_mm_frames' not in res  # the main row's are in its ablation entry
     assert (tmp_path / 'fig' / 'fig3_0000.png').exists()
 
 

@@ -17,7 +17,8 @@ network's own labels; miou_model / miou_model_net_res: the same for the publishe
 segmentation (segmentation 'model', the default: labels from the fitted mesh),
 corr_err_cm_median (canonical T-pose distance between the predicted and the true vertex),
 net_ms / fit_ms medians, failures (frames where no person was reconstructed; excluded
-from the means and counted).
+from the means and counted). Every ablation row also lists its per-frame PVE,
+`pve_mm_frames`: [frame index in the bag, mm] (what makes a mean: the tail of hard frames).
 """
 from __future__ import annotations
 
