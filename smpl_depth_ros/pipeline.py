@@ -19,7 +19,7 @@ from smpl_depth_ros.fit import Fitter, backproject  # noqa: F401  (re-exported)
 from smpl_depth_ros.fit.freespace import FreeSpace, supporting_planes
 from smpl_depth_ros.net.infer import CorrespondenceNet
 from smpl_depth_ros.net.preprocess import (NEAR_RANGE, crop_depth, find_persons,
-                                           network_input, split_side_by_side)
+                                           network_input, pixel_points, split_side_by_side)
 from smpl_depth_ros.types import FrameResult, InputError, PersonResult
 
 MIN_BODY_PIXELS = 60  # network-foreground crop pixels needed to attempt a fit
@@ -426,9 +426,7 @@ class Reconstructor:
         """
         if planes:
             rr, cc = np.nonzero(region & ~fg)
-            z = dw[rr, cc].astype(np.float64)
-            pts = np.stack([(cc + u0 - K[0, 2]) * z / K[0, 0],
-                            (rr + v0 - K[1, 2]) * z / K[1, 1], z], 1)
+            pts = pixel_points(rr + v0, cc + u0, dw[rr, cc], K)
             on = np.zeros(len(rr), bool)
             for pl in planes:
                 on |= np.abs(pts @ pl[:3] - pl[3]) <= PLANE_M
@@ -473,9 +471,7 @@ class Reconstructor:
         needed."""
         cfg = self.config
         margin = float(cfg.model_label_margin_m)
-        z = dw[rr, cc].astype(np.float64)
-        pts = np.stack([(cc + u0 - K[0, 2]) * z / K[0, 0], (rr + v0 - K[1, 2]) * z / K[1, 1],
-                        z], 1)
+        pts = pixel_points(rr + v0, cc + u0, dw[rr, cc], K)
         isfg = fg[rr, cc]
         part = np.zeros(len(pts), np.int64)
         if isfg.any():

@@ -182,6 +182,12 @@ def _log(R: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(R.reshape(-1, 3, 3)).as_rotvec().reshape(R.shape[:-2] + (3,))
 
 
+def _anchor_energy(rot: np.ndarray, anchor) -> float:
+    """Temporal prior: weight * sum of the squared angles between `rot` (P + 1, 3, 3) and
+    the anchor's rotations; anchor = (rotations, weight)."""
+    return anchor[1] * float((_log(rot @ anchor[0].transpose(0, 2, 1)) ** 2).sum())
+
+
 # Levi-Civita: (a x b)_c = eps[c, b_, d] a_b b_d.
 _EPS = np.zeros((3, 3, 3))
 for _c, _b, _d in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
@@ -655,8 +661,7 @@ class Fitter:
             if fterm is not None:
                 en += fterm[0]
             if anchor is not None:
-                dr = _log(state[0] @ anchor[0].transpose(0, 2, 1))  # (P + 1, 3)
-                en += anchor[1] * float((dr ** 2).sum())
+                en += _anchor_energy(state[0], anchor)
             if prev is not None and en > prev[0]:
                 # Reject the step: restore the last accepted state and damp more (LM).
                 en, state, (sq, e, G, x, WQ, nrm, facing, fterm), aa, viol = prev
@@ -733,7 +738,7 @@ class Fitter:
         if free:
             en += self._free_space_term(state, prob, G, x, free)[0]
         if anchor is not None:
-            en += anchor[1] * float((_log(state[0] @ anchor[0].transpose(0, 2, 1)) ** 2).sum())
+            en += _anchor_energy(state[0], anchor)
         if prev is not None and prev_sigma == s_end and en > prev[0]:
             en, state, sq = prev[0], prev[1], prev[2][0]
         return state, en, it, sq

@@ -177,7 +177,7 @@ def split_side_by_side(crop: Crop, K: np.ndarray, min_dip_m: float = 0.2,
     return parts
 
 
-def _pixel_points(rows, cols, z, K) -> np.ndarray:
+def pixel_points(rows, cols, z, K) -> np.ndarray:
     """Full-image pixels (row, col) with depth z -> (N, 3) float64 camera-frame points."""
     z = z.astype(np.float64)
     return np.stack([(cols - K[0, 2]) * z / K[0, 0], (rows - K[1, 2]) * z / K[1, 1], z], 1)
@@ -358,7 +358,7 @@ def _group_blob(group, lab, slices, d, n, grow, s, K):
     zz = d[r0:r1, c0:c1][rr, cc]
     rr, cc = rr + r0, cc + c0
     step = -(-len(zz) // 2000)
-    lo, hi = np.percentile(_pixel_points(rr[::step] * s, cc[::step] * s, zz[::step], K),
+    lo, hi = np.percentile(pixel_points(rr[::step] * s, cc[::step] * s, zz[::step], K),
                            (2, 98), axis=0)
     height, width = hi[1] - lo[1], max(hi[0] - lo[0], hi[2] - lo[2])
     if not (0.4 <= height <= 2.6 and width <= 1.6):
@@ -463,7 +463,7 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
         return []
     rng = np.random.default_rng(seed)
     planes: list = []
-    keep = _remove_planes(_pixel_points(r * s, c * s, d[r, c], K), rng, planes=planes)
+    keep = _remove_planes(pixel_points(r * s, c * s, d[r, c], K), rng, planes=planes)
     fg = np.zeros_like(valid)
     fg[valid] = keep
     edges = _depth_edges(depth, s)
@@ -480,7 +480,7 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
             rr, cc = np.nonzero(lab == k)
             z = float(np.median(d[rr, cc]))
             thresh = max(0.03, 2 * (0.0012 + 0.0019 * (z - 0.4) ** 2))
-            on_plane = ~_remove_planes(_pixel_points(rr * s, cc * s, d[rr, cc], K), rng,
+            on_plane = ~_remove_planes(pixel_points(rr * s, cc * s, d[rr, cc], K), rng,
                                        max_planes=3, min_up=-1.0, thresh=thresh,
                                        planes=planes)
             fg[rr[on_plane], cc[on_plane]] = False

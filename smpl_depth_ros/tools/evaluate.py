@@ -201,7 +201,8 @@ def main(argv=None) -> int:
         print(file=sys.stderr)
     table = {k: _summ(v, n) for k, v in rows.items()}
     main_row = table['double_unet+fit']
-    out = dict({k: v for k, v in main_row.items() if k != 'pve_mm_frames'}, bag=args.bag, tracking=cfg.tracking, device=args.device,
+    main_summary = {k: v for k, v in main_row.items() if k != 'pve_mm_frames'}
+    out = dict(main_summary, bag=args.bag, tracking=cfg.tracking, device=args.device,
                weights=args.weights or 'shipped', flip_tta=cfg.flip_tta,
                params=overrides,
                body_model=body.name, ablation=table)
