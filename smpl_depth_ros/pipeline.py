@@ -259,7 +259,8 @@ class Reconstructor:
                 bbox=(int(crop.u0), int(crop.v0), int(crop.u0 + crop.scale * crop.size),
                       int(crop.v0 + crop.scale * crop.size)),
                 mask=mask, residual_m=fit.median_residual, num_points=int(len(pts)),
-                tracked=tracked, pixels=np.stack([r, c], 1), vertex_ids=vids))
+                tracked=tracked, pixels=np.stack([r, c], 1), vertex_ids=vids, crop=crop,
+                crop_labels=np.where(x[i][1] > 0, lab[i], 0).astype(np.uint8)))
         return persons
 
     def _rank_candidates(self, d, crops, timings):

@@ -42,6 +42,9 @@ class PersonResult:
         mask: (H, W) bool, this person's pixels in the full image.
         residual_m: median point-to-correspondence distance after fitting (metres).
         num_points: points used for fitting.
+        crop: the net.preprocess.Crop the network saw (its mapping to full-image pixels).
+        crop_labels: (S, S) uint8, the network's part labels at its own input resolution
+            (0 where the input pixel was invalid).
     """
 
     params: BodyParams
@@ -54,6 +57,8 @@ class PersonResult:
     tracked: bool = False
     pixels: np.ndarray | None = None      # (N, 2) full-image (row, col) of fitted points
     vertex_ids: np.ndarray | None = None  # (N,) their Eq. 2 template vertex
+    crop: object | None = None
+    crop_labels: np.ndarray | None = None
 
 
 @dataclass

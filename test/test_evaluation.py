@@ -30,3 +30,33 @@ def test_miou_and_its_network_resolution_weighting():
     assert abs(ev.miou(w) - np.mean([3 / 3, 2 / 3, 1 / 2])) < 1e-12
     # Background is excluded; a part nobody has or predicts does not count.
     assert ev.miou(ev.confusion(np.zeros((2, 2), int), np.array([[0, 5], [5, 0]]))) == 0.0
+
+
+def test_crop_confusion_counts_at_the_networks_resolution():
+    """Ground truth sent into the crop and compared there: labels equal to the sampled
+    truth score 1.0 even where the full-image truth has detail finer than a crop pixel
+    (the upsampled labels cannot show it), and the pixels the network's input did not
+    hold (too far behind the person) are not counted."""
+    from smpl_depth_ros.net.preprocess import square_crop
+    H, W = 240, 320
+    depth = np.zeros((H, W), np.float32)
+    depth[40:200, 100:220] = 2.0
+    depth[40:60, 100:220] = 4.0          # beyond the input's 1 m window: not seen
+    gt = np.zeros((H, W), np.uint8)
+    gt[40:200, 100:160] = 1
+    gt[40:200, 160:220] = 2
+    gt[100:200:2, 100:220] = 3           # one-pixel stripes, finer than a crop pixel
+    crop = square_crop(100, 40, 219, 199, size=32, median_depth=2.0)
+    rr, cc, inside = crop.sample_indices(depth.shape)
+    sampled = np.where(inside, gt[rr, cc], 0)
+    c = ev.crop_confusion(crop, sampled, depth, gt)
+    assert ev.miou(c) == 1.0
+    seen = (depth[rr, cc] == 2.0) & inside
+    assert c.sum() == int((seen & (sampled > 0)).sum())
+    # Upsampled back to the full image the same labels miss the stripes' detail.
+    i = np.clip(((np.arange(H) + 0.5 - crop.v0) / crop.scale).astype(int), 0, 31)
+    j = np.clip(((np.arange(W) + 0.5 - crop.u0) / crop.scale).astype(int), 0, 31)
+    up = np.where(depth == 2.0, sampled[np.ix_(i, j)], 0)
+    assert ev.miou(ev.confusion(up, np.where(depth == 2.0, gt, 0))) < 0.9
+    wrong = np.where(sampled == 3, 1, sampled)
+    assert ev.miou(ev.crop_confusion(crop, wrong, depth, gt)) < 0.7

@@ -19,7 +19,8 @@ def test_evaluate_writes_table_ii_json(bag, tmp_path):
     assert evaluate.main([bag, '--json', str(out), '--figures', str(tmp_path / 'fig'),
                           '--figure-frames', '0']) == 0
     res = json.loads(out.read_text())
-    for key in ('pve_mm', 'pa_pve_mm', 'mpjpe_mm', 'miou', 'miou_net_res', 'corr_err_cm_median',
+    for key in ('pve_mm', 'pa_pve_mm', 'mpjpe_mm', 'miou', 'miou_net_res', 'miou_crop',
+                'corr_err_cm_median',
                 'net_ms_median', 'fit_ms_median', 'frames'):
         assert key in res, key
     assert res['frames'] == 3 and res['command'].startswith(f'evaluate {bag} --json')

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
+from scipy.spatial import cKDTree
 
 from smpl_depth_ros.net.unet import INPUT_SIZE
 
@@ -183,13 +184,35 @@ def pixel_points(rows, cols, z, K) -> np.ndarray:
     return np.stack([(cols - K[0, 2]) * z / K[0, 0], (rows - K[1, 2]) * z / K[1, 1], z], 1)
 
 
+def _scene_sized(q: np.ndarray, n: np.ndarray, min_extent: float) -> bool:
+    """Whether plane inliers `q` (normal `n`) form a scene-sized plane (floor, wall): both
+    in-plane extents > min_extent m (a person's torso is planar-ish too, but never that
+    large), and filling that extent: a thin horizontal slice through several people at
+    one height is a few short segments, so >= 35 % of its 10 cm cells must be occupied."""
+    e1 = np.cross(n, [1.0, 0, 0] if abs(n[0]) < 0.9 else [0, 1.0, 0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n, e1)
+    u, v = q @ e1, q @ e2
+    (lo_u, hi_u), (lo_v, hi_v) = np.percentile(u, (2, 98)), np.percentile(v, (2, 98))
+    if min(hi_u - lo_u, hi_v - lo_v) < min_extent:
+        return False
+    cu = ((u - lo_u) / 0.1).astype(np.int64)
+    cv = ((v - lo_v) / 0.1).astype(np.int64)
+    ok = (cu >= 0) & (cv >= 0) & (u <= hi_u) & (v <= hi_v)
+    occupied = np.zeros((int((hi_u - lo_u) / 0.1) + 1, int((hi_v - lo_v) / 0.1) + 1), bool)
+    occupied[cu[ok], cv[ok]] = True
+    return occupied.sum() >= 0.35 * ((hi_u - lo_u) / 0.1 + 1) * ((hi_v - lo_v) / 0.1 + 1)
+
+
 def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=2,
                    min_fraction=0.03, thresh=0.03, iters=1000, min_extent=1.0,
                    min_up=0.75, sample=2000, presample=200, finalists=10,
-                   planes: list | None = None) -> np.ndarray:
+                   local_k=16, planes: list | None = None) -> np.ndarray:
     """Boolean mask of points that belong to none of the dominant planes.
 
-    RANSAC over `iters` point triples per plane; hypotheses are scored preemptively: all on
+    RANSAC over `iters` point triples per plane (half of them local: a point and two of
+    its `local_k` nearest neighbours); a floor-like patch too small for a scene plane is
+    looked past (up to 3 of them); hypotheses are scored preemptively: all on
     `presample` random points, the best `finalists` on `sample` random points. The planes
     removed are appended to `planes` (when given) as (4,) arrays (n, offset), n . x =
     offset, unit n towards the camera (the side the scene is seen from).
@@ -198,12 +221,30 @@ def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=2,
     n_all = len(points)
     if n_all < 100:
         return keep
-    for _ in range(max_planes):
-        idx = np.flatnonzero(keep)
+    # Points a hypothesis may come from: not removed, and not on a floor-like patch found
+    # too small for a scene plane (a box top): the floor may hold fewer points than it,
+    # and stopping there left the floor in, and the person standing on it merged with it
+    # (val_s2 frame 86).
+    avail = keep.copy()
+    found = 0
+    for _ in range(max_planes + 3):
+        if found == max_planes:
+            break
+        idx = np.flatnonzero(avail)
         if len(idx) < 100:
             break
         P = points[idx[rng.choice(len(idx), min(len(idx), sample), replace=False)]]
         tri = rng.integers(0, len(P), (iters, 3))
+        # Half the triples local (two of a point's nearest neighbours in the sample): a
+        # floor that fills 10 % of the view gives an all-floor random triple once in a
+        # thousand, a local one every ten or so.
+        k = min(local_k, len(P) - 1)
+        if k >= 2:
+            h = iters // 2
+            nb = cKDTree(P).query(P[tri[:h, 0]], k=k + 1)[1][:, 1:]
+            pick = rng.integers(0, k, (h, 2))
+            pick[:, 1] = (pick[:, 0] + 1 + rng.integers(0, k - 1, h)) % k
+            tri[:h, 1:] = np.take_along_axis(nb, pick, 1)
         a, b, c = P[tri[:, 0]], P[tri[:, 1]], P[tri[:, 2]]
         n = np.cross(b - a, c - a)
         nn = np.linalg.norm(n, axis=1)
@@ -221,27 +262,74 @@ def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=2,
         pre = (np.abs(P[:presample] @ n.T - off) < thresh).sum(0)
         top = np.argsort(-pre)[:finalists]
         best = top[np.argmax((np.abs(P @ n[top].T - off[top]) < thresh).sum(0))]
-        inl = keep & (np.abs(points @ n[best] - off[best]) < thresh)
-        if inl.sum() < min_fraction * n_all:
+        nb_, ob_ = n[best], off[best]
+        near = np.abs(points @ nb_ - ob_) < thresh
+        if (avail & near).sum() < min_fraction * n_all:
             break
-        # Only scene-sized planes (floor, walls): both in-plane extents > min_extent m.
-        # A person's torso is planar-ish too, but never that large.
-        e1 = np.cross(n[best], [1.0, 0, 0] if abs(n[best][0]) < 0.9 else [0, 1.0, 0])
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(n[best], e1)
-        q = points[inl]
-        u, v = q @ e1, q @ e2
-        (lo_u, hi_u), (lo_v, hi_v) = np.percentile(u, (2, 98)), np.percentile(v, (2, 98))
-        if min(hi_u - lo_u, hi_v - lo_v) < min_extent:
+        # Least squares on the inliers (a sample of them): three points fix a plane
+        # only to their noise, centimetres over a floor's extent.
+        q = points[avail & near]
+        q = q[rng.choice(len(q), min(len(q), 4000), replace=False)]
+        nl = np.linalg.svd(q - q.mean(0), full_matrices=False)[2][2]
+        if abs(nl[1]) > min_up:
+            nb_, ob_ = nl, float(q.mean(0) @ nl)
+            near = np.abs(points @ nb_ - ob_) < thresh
+        if not _scene_sized(points[avail & near], nb_, min_extent):
+            avail &= ~near  # look past it
+            continue
+        keep &= ~near
+        avail &= ~near
+        found += 1
+        if planes is not None:
+            n_b, off_b = (nb_, ob_) if ob_ < 0 else (-nb_, -ob_)
+            planes.append(np.array([*n_b, off_b]))
+    return keep
+    for _ in range(max_planes):
+        idx = np.flatnonzero(keep)
+        if len(idx) < 100:
             break
-        # A floor fills its extent; a thin horizontal slice through several people at
-        # one height does not (it is a few short segments): require >= 35 % of 10 cm cells.
-        cu = ((u - lo_u) / 0.1).astype(np.int64)
-        cv = ((v - lo_v) / 0.1).astype(np.int64)
-        ok2 = (cu >= 0) & (cv >= 0) & (u <= hi_u) & (v <= hi_v)
-        occupied = np.zeros((int((hi_u - lo_u) / 0.1) + 1, int((hi_v - lo_v) / 0.1) + 1), bool)
-        occupied[cu[ok2], cv[ok2]] = True
-        if occupied.sum() < 0.35 * ((hi_u - lo_u) / 0.1 + 1) * ((hi_v - lo_v) / 0.1 + 1):
+        P = points[idx[rng.choice(len(idx), min(len(idx), sample), replace=False)]]
+        tri = rng.integers(0, len(P), (iters, 3))
+        # Half the triples local (two of a point's nearest neighbours in the sample): a
+        # floor that fills 10 % of the view gives an all-floor random triple once in a
+        # thousand, a local one every ten or so (val_s2 frame 86: the floor under a
+        # crouching person went unfound, and the person with it).
+        k = min(local_k, len(P) - 1)
+        if k >= 2:
+            h = iters // 2
+            nb = cKDTree(P).query(P[tri[:h, 0]], k=k + 1)[1][:, 1:]
+            pick = rng.integers(0, k, (h, 2))
+            pick[:, 1] = (pick[:, 0] + 1 + rng.integers(0, k - 1, h)) % k
+            tri[:h, 1:] = np.take_along_axis(nb, pick, 1)
+        a, b, c = P[tri[:, 0]], P[tri[:, 1]], P[tri[:, 2]]
+        n = np.cross(b - a, c - a)
+        nn = np.linalg.norm(n, axis=1)
+        ok = nn > 1e-6
+        if not ok.any():
+            break
+        n, a = n[ok] / nn[ok, None], a[ok]
+        # Floor-like planes only (normal within ~40 deg of the image's vertical): people
+        # are cut from walls by depth jumps, but stand on the floor; side by side, several
+        # people at one depth would look like a wall.
+        up = np.abs(n[:, 1]) > min_up
+        if not up.any():
+            break
+        n, off = n[up], (a[up] * n[up]).sum(1)  # plane: x . n = off
+        pre = (np.abs(P[:presample] @ n.T - off) < thresh).sum(0)
+        top = np.argsort(-pre)[:finalists]
+        score = (np.abs(P @ n[top].T - off[top]) < thresh).sum(0)
+        # The best-supported hypothesis that is scene-sized: a box top or a slice through
+        # people can outscore the floor in one RANSAC draw, and giving up there left the
+        # floor in and the person standing on it merged with it (val_s2 frame 86).
+        inl = None
+        for best in top[np.argsort(-score, kind='stable')]:
+            cand = keep & (np.abs(points @ n[best] - off[best]) < thresh)
+            if cand.sum() < min_fraction * n_all:
+                continue
+            if _scene_sized(points[cand], n[best], min_extent):
+                inl = cand
+                break
+        if inl is None:
             break
         keep &= ~inl
         if planes is not None:
