@@ -300,3 +300,34 @@ def test_peel_finds_a_person_at_a_wall_beside_a_person_sized_box():
     assert [round(c.median_depth, 1) for c in first] == [2.5]
     both = find_persons(d, K, 0.5, 6.0, min_pixels=300, max_persons=3, peel=True)
     assert sorted(round(c.median_depth, 1) for c in both) == [2.5, 4.0]
+
+
+def test_train_correspondence_runs_checkpoints_and_resumes(body, tmp_path):
+    """The training command end to end on a tiny budget: weights, JSON log, validation
+    PNG and checkpoint are written; --resume continues from the checkpoint's step; the
+    weights load for inference; --class-balance weighs small parts up, not background."""
+    import json
+
+    from smpl_depth_ros.net import train
+    out = tmp_path / 'w.pt'
+    args = ['--out', str(out), '--steps', '3', '--batch', '2', '--workers', '0',
+            '--val-size', '4', '--val-every', '2', '--ckpt-every', '2', '--seed', '3',
+            '--class-balance', '0.4']
+    train.main(args)
+    log = json.loads((tmp_path / 'w.log.json').read_text())
+    assert [e['step'] for e in log] == [2, 3] and 0 <= log[-1]['miou'] <= 1
+    assert (tmp_path / 'w.val.png').exists() and (tmp_path / 'w.pt.ckpt').exists()
+    train.main([*args[:2], '--steps', '5', *args[4:], '--resume'])
+    log = json.loads((tmp_path / 'w.log.json').read_text())
+    assert [e['step'] for e in log] == [2, 3, 4, 5]
+    ck = torch.load(out, map_location='cpu', weights_only=False)
+    assert ck['meta']['steps'] == 5 and '--class-balance 0.4' in ck['meta']['command']
+    net = CorrespondenceNet(body, str(out))
+    x = np.zeros((1, 2, INPUT_SIZE, INPUT_SIZE), np.float32)
+    lab, coords = net.predict(x)
+    assert lab.shape == (1, INPUT_SIZE, INPUT_SIZE) and coords.shape == (1, 3, INPUT_SIZE,
+                                                                          INPUT_SIZE)
+    labels = torch.tensor([0] * 800 + [2] * 150 + [7] * 10 + list(range(15)))
+    w = train.class_weights(labels, 0.4)
+    assert w[0] == 1.0 and w[2] == 1.0 and w[7] > 2.5
+    assert train.class_weights(labels, 0.0) is None
