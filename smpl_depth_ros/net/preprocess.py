@@ -284,58 +284,6 @@ def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=2,
             n_b, off_b = (nb_, ob_) if ob_ < 0 else (-nb_, -ob_)
             planes.append(np.array([*n_b, off_b]))
     return keep
-    for _ in range(max_planes):
-        idx = np.flatnonzero(keep)
-        if len(idx) < 100:
-            break
-        P = points[idx[rng.choice(len(idx), min(len(idx), sample), replace=False)]]
-        tri = rng.integers(0, len(P), (iters, 3))
-        # Half the triples local (two of a point's nearest neighbours in the sample): a
-        # floor that fills 10 % of the view gives an all-floor random triple once in a
-        # thousand, a local one every ten or so (val_s2 frame 86: the floor under a
-        # crouching person went unfound, and the person with it).
-        k = min(local_k, len(P) - 1)
-        if k >= 2:
-            h = iters // 2
-            nb = cKDTree(P).query(P[tri[:h, 0]], k=k + 1)[1][:, 1:]
-            pick = rng.integers(0, k, (h, 2))
-            pick[:, 1] = (pick[:, 0] + 1 + rng.integers(0, k - 1, h)) % k
-            tri[:h, 1:] = np.take_along_axis(nb, pick, 1)
-        a, b, c = P[tri[:, 0]], P[tri[:, 1]], P[tri[:, 2]]
-        n = np.cross(b - a, c - a)
-        nn = np.linalg.norm(n, axis=1)
-        ok = nn > 1e-6
-        if not ok.any():
-            break
-        n, a = n[ok] / nn[ok, None], a[ok]
-        # Floor-like planes only (normal within ~40 deg of the image's vertical): people
-        # are cut from walls by depth jumps, but stand on the floor; side by side, several
-        # people at one depth would look like a wall.
-        up = np.abs(n[:, 1]) > min_up
-        if not up.any():
-            break
-        n, off = n[up], (a[up] * n[up]).sum(1)  # plane: x . n = off
-        pre = (np.abs(P[:presample] @ n.T - off) < thresh).sum(0)
-        top = np.argsort(-pre)[:finalists]
-        score = (np.abs(P @ n[top].T - off[top]) < thresh).sum(0)
-        # The best-supported hypothesis that is scene-sized: a box top or a slice through
-        # people can outscore the floor in one RANSAC draw, and giving up there left the
-        # floor in and the person standing on it merged with it (val_s2 frame 86).
-        inl = None
-        for best in top[np.argsort(-score, kind='stable')]:
-            cand = keep & (np.abs(points @ n[best] - off[best]) < thresh)
-            if cand.sum() < min_fraction * n_all:
-                continue
-            if _scene_sized(points[cand], n[best], min_extent):
-                inl = cand
-                break
-        if inl is None:
-            break
-        keep &= ~inl
-        if planes is not None:
-            n_b, off_b = (n[best], off[best]) if off[best] < 0 else (-n[best], -off[best])
-            planes.append(np.array([*n_b, off_b]))
-    return keep
 
 
 def _depth_edges(depth: np.ndarray, s: int) -> np.ndarray:
