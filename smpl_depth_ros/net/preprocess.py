@@ -264,17 +264,18 @@ def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=2,
         best = top[np.argmax((np.abs(P @ n[top].T - off[top]) < thresh).sum(0))]
         nb_, ob_ = n[best], off[best]
         near = np.abs(points @ nb_ - ob_) < thresh
-        if (avail & near).sum() < min_fraction * n_all:
+        q = points[avail & near]
+        if len(q) < min_fraction * n_all:
             break
         # Least squares on the inliers (a sample of them): three points fix a plane
         # only to their noise, centimetres over a floor's extent.
-        q = points[avail & near]
-        q = q[rng.choice(len(q), min(len(q), 4000), replace=False)]
-        nl = np.linalg.svd(q - q.mean(0), full_matrices=False)[2][2]
+        qs = q[rng.choice(len(q), min(len(q), 4000), replace=False)]
+        nl = np.linalg.svd(qs - qs.mean(0), full_matrices=False)[2][2]
         if abs(nl[1]) > min_up:
-            nb_, ob_ = nl, float(q.mean(0) @ nl)
+            nb_, ob_ = nl, float(qs.mean(0) @ nl)
             near = np.abs(points @ nb_ - ob_) < thresh
-        if not _scene_sized(points[avail & near], nb_, min_extent):
+            q = points[avail & near]
+        if not _scene_sized(q, nb_, min_extent):
             avail &= ~near  # look past it
             continue
         keep &= ~near
