@@ -305,14 +305,15 @@ def test_peel_finds_a_person_at_a_wall_beside_a_person_sized_box():
 def test_train_correspondence_runs_checkpoints_and_resumes(body, tmp_path):
     """The training command end to end on a tiny budget: weights, JSON log, validation
     PNG and checkpoint are written; --resume continues from the checkpoint's step; the
-    weights load for inference; --class-balance weighs small parts up, not background."""
+    weights load for inference; --class-balance weighs small parts up, not background;
+    --ema validates and saves the weight average, kept across --resume."""
     import json
 
     from smpl_depth_ros.net import train
     out = tmp_path / 'w.pt'
     args = ['--out', str(out), '--steps', '3', '--batch', '2', '--workers', '0',
             '--val-size', '4', '--val-every', '2', '--ckpt-every', '2', '--seed', '3',
-            '--class-balance', '0.4']
+            '--class-balance', '0.4', '--ema', '0.5']
     train.main(args)
     log = json.loads((tmp_path / 'w.log.json').read_text())
     assert [e['step'] for e in log] == [2, 3] and 0 <= log[-1]['miou'] <= 1
@@ -320,6 +321,13 @@ def test_train_correspondence_runs_checkpoints_and_resumes(body, tmp_path):
     train.main([*args[:2], '--steps', '5', *args[4:], '--resume'])
     log = json.loads((tmp_path / 'w.log.json').read_text())
     assert [e['step'] for e in log] == [2, 3, 4, 5]
+    assert all(0 <= e['miou_live'] <= 1 for e in log)  # the live weights, beside the average
+    ckpt = torch.load(str(out) + '.ckpt', map_location='cpu', weights_only=False)
+    saved = torch.load(out, map_location='cpu', weights_only=False)['state_dict']
+    for k, v in ckpt['ema'].items():  # the average is what was saved, not the live weights
+        assert torch.equal(saved[k], v.half() if v.is_floating_point() else v), k
+    assert any(not torch.allclose(ckpt['ema'][k], ckpt['net'][k])
+               for k in ckpt['net'] if ckpt['net'][k].is_floating_point())
     ck = torch.load(out, map_location='cpu', weights_only=False)
     assert ck['meta']['steps'] == 5 and '--class-balance 0.4' in ck['meta']['command']
     net = CorrespondenceNet(body, str(out))
@@ -330,4 +338,9 @@ def test_train_correspondence_runs_checkpoints_and_resumes(body, tmp_path):
     labels = torch.tensor([0] * 800 + [2] * 150 + [7] * 10 + list(range(15)))
     w = train.class_weights(labels, 0.4)
     assert w[0] == 1.0 and w[2] == 1.0 and w[7] > 2.5
+    # The average itself: a = d * a + (1 - d) * b on every float tensor.
+    a, b = torch.nn.Linear(2, 2), torch.nn.Linear(2, 2)
+    avg = train.WeightAverage(a, 0.75)
+    avg.update(b)
+    assert torch.allclose(avg.net.weight, 0.75 * a.weight + 0.25 * b.weight)
     assert train.class_weights(labels, 0.0) is None
