@@ -67,6 +67,22 @@ def validate_input(depth: np.ndarray, K: np.ndarray, max_pixels: int) -> np.ndar
     return d
 
 
+def body_score(crop, valid: np.ndarray, labels: np.ndarray, image_shape) -> float:
+    """How much of a body the network sees in a candidate: the share of the candidate's
+    own blob pixels (those of `valid`, its crop's valid input pixels, that map into its
+    full-image mask) labelled body, times the number of parts covering >= 2 % of them.
+    The blob's share, not the crop's: a crop's background grows with a person's reach,
+    while a person-sized box fills its crop (and outranked a person in front of a wall)."""
+    blob = valid
+    if crop.mask is not None:
+        rr, cc, inside = crop.sample_indices(image_shape)
+        blob = blob & inside & crop.mask[rr, cc]
+    fg = (labels > 0) & blob
+    n = max(int(fg.sum()), 1)
+    parts = int((np.bincount(labels[fg], minlength=2)[1:] >= 0.02 * n).sum())
+    return n / max(int(blob.sum()), 1) * parts
+
+
 class Reconstructor:
     """Loads the body model and network once; `process` reconstructs one frame.
 
@@ -268,9 +284,10 @@ class Reconstructor:
 
         While a person is tracked, the candidate that covers most of its previous pixels
         comes first (no network needed). Otherwise the network runs on every candidate
-        and they are ordered by how much of a body it sees: the share of the blob it
-        labels as body times the number of parts covering >= 2 % of it (background
-        objects get few parts); the most central candidate is not always the person.
+        and they are ordered by how much of a body it sees: the share of the blob's own
+        pixels it labels as body times the number of parts covering >= 2 % of them
+        (background objects get few parts); the most central candidate is not always the
+        person.
 
         Returns (crops, network inputs, labels, coords, plain): the outputs are filled for
         the candidates the network already ran on; ranking uses the plain pass only, so
@@ -292,12 +309,7 @@ class Reconstructor:
         else:
             lab, coords = self.net.predict(x, flip_tta=False)
         timings['network'] += (time.perf_counter() - tn) * 1e3
-        score = []
-        for xi, li in zip(x, lab):
-            fg = (li > 0) & (xi[1] > 0)
-            n = max(int(fg.sum()), 1)
-            parts = int((np.bincount(li[fg], minlength=2)[1:] >= 0.02 * n).sum())
-            score.append(-n / max(int((xi[1] > 0).sum()), 1) * parts)
+        score = [-body_score(c, xi[1] > 0, li, d.shape) for c, xi, li in zip(crops, x, lab)]
         # A blob seen through a gap of a nearer candidate goes after every other one.
         order = np.lexsort((score, [c.behind for c in crops]))
         plain = ({k: (probs[i:i + 1], rc[i:i + 1]) for k, i in enumerate(order)}

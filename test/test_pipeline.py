@@ -211,3 +211,31 @@ def test_model_segmentation_beats_the_networks_labels(rec, monkeypatch):
     net = Reconstructor(PipelineConfig(device='cpu', segmentation='network'), body=rec.body)
     r = net.process(f['depth'], f['K'])
     assert r.labels is r.network_labels and r.labels.any()
+
+
+def test_candidates_are_scored_on_their_own_blob_not_their_crop():
+    """A person in front of a wall: its crop holds the wall too. The score is the share of
+    the candidate's blob labelled body (times the parts seen), so the wall around it does
+    not lower it, and a box labelled body on half of its blob scores below the person."""
+    from smpl_depth_ros.net.preprocess import square_crop
+    from smpl_depth_ros.pipeline import body_score
+    H, W = 480, 640
+    mask = np.zeros((H, W), bool)
+    mask[100:300, 200:260] = True  # the person's blob
+    crop = square_crop(200, 100, 259, 299, median_depth=2.0, mask=mask, size=64)
+    rr, cc, inside = crop.sample_indices((H, W))
+    valid = inside.copy()  # the wall: every crop pixel has depth
+    on_blob = mask[rr, cc] & inside
+    labels = np.zeros(valid.shape, np.uint8)
+    rows = np.flatnonzero(on_blob.any(1))
+    thirds = np.array_split(rows, 3)
+    for part, rws in zip((1, 2, 9), thirds):  # head, torso, a leg
+        labels[rws] = np.where(on_blob[rws], part, 0)
+    assert body_score(crop, valid, labels, (H, W)) == pytest.approx(3.0)
+    # Without its mask the same crop counts the wall as not-body: the old, crop-share score.
+    whole = square_crop(200, 100, 259, 299, median_depth=2.0, mask=None, size=64)
+    assert body_score(whole, valid, labels, (H, W)) < 0.5 * 3.0
+    # Half of the blob labelled body, with the same parts: half the score.
+    half = labels.copy()
+    half[:, : labels.shape[1] // 2] = 0
+    assert body_score(crop, valid, half, (H, W)) < 0.75 * 3.0
