@@ -258,7 +258,8 @@ class Reconstructor:
                 vids = self._refine_correspondences(pts, vids, fit.vertices)
                 fit = self.fitter.fit(pts, vids, init=fit.params, fix_shape=False,
                                       iterations=cfg.fit.tracking_iterations,
-                                      free_space=free)
+                                      free_space=free,
+                                      tangent_weight=cfg.fit.icp_tangent_weight)
             if not persons and cfg.tracking and self._track is not None:
                 self._track = (fit, stamp_ns)
                 if not tracked:  # a new track keeps the cold fit's shape until sampled

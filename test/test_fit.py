@@ -163,6 +163,25 @@ def test_tangent_weight_resists_correspondences_biased_inwards(body):
     assert err[0.5] < 0.7 * err[1.0], err
 
 
+def test_tangent_weight_per_fit_overrides_the_config(body):
+    """fit(..., tangent_weight=a) is the fit of a Fitter configured with a (the pipeline's
+    refit to nearest-vertex correspondences uses FitConfig.icp_tangent_weight this way),
+    cold and warm, and a different weight gives a different fit."""
+    rng, V, _, front = _scene(body, 12)
+    ids = front.copy()
+    wrong = rng.random(len(ids)) < 0.2
+    ids[wrong] = rng.choice(front, int(wrong.sum()))
+    warm = Fitter(body).fit(V[front], front, iterations=2).params
+    for init in (None, warm):
+        fits = {}
+        for cfg_w, call_w in ((0.05, None), (0.5, 0.05), (0.5, None)):
+            f = Fitter(body, FitConfig(tangent_weight=cfg_w))
+            fits[cfg_w, call_w] = f.fit(V[front], ids, init=init, fix_shape=False,
+                                        iterations=10, tangent_weight=call_w).vertices
+        assert np.array_equal(fits[0.05, None], fits[0.5, 0.05])
+        assert np.abs(fits[0.5, None] - fits[0.5, 0.05]).max() > 1e-4
+
+
 def test_correspondences_on_the_far_side_are_discounted(body):
     """A quarter of the points named a vertex of the same part on the side facing away
     from the camera (front/back confusion of a limb's coordinates): such a vertex cannot

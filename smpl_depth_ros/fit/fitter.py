@@ -435,7 +435,7 @@ class Fitter:
             solver: str | None = None, iterations: int | None = None,
             fix_shape: bool | None = None, weights=None,
             targets_are_joints: bool = False, free_space: FreeSpace | None = None,
-            temporal_weight: float = 0.0) -> FitResult:
+            temporal_weight: float = 0.0, tangent_weight: float | None = None) -> FitResult:
         """Fit to points with correspondences.
 
         Args:
@@ -453,6 +453,8 @@ class Fitter:
             temporal_weight: with a warm start, weight (per rad^2) of every joint's
                 rotation away from init's (the fast solver only): tracking's temporal
                 prior (FitConfig.lambda_temporal).
+            tangent_weight: override cfg.tangent_weight for this fit (the pipeline's
+                refit to nearest-vertex correspondences uses cfg.icp_tangent_weight).
 
         Returns:
             FitResult.
@@ -460,6 +462,7 @@ class Fitter:
         t0 = time.perf_counter()
         cfg, body = self.cfg, self.body
         solver = solver or cfg.solver
+        tw = cfg.tangent_weight if tangent_weight is None else float(tangent_weight)
         pts_all = np.asarray(points.cpu() if torch.is_tensor(points) else points, np.float64)
         ids_all = np.asarray(vertex_ids.cpu() if torch.is_tensor(vertex_ids) else vertex_ids,
                              np.int64)
@@ -508,14 +511,16 @@ class Fitter:
             anchor = (rot.copy(), float(temporal_weight)) if warm and temporal_weight > 0 \
                 else None
             state, en, iters, sq = self._levenberg_marquardt(
-                state, pts, ids, wts, targets_are_joints, n, fix_shape, s0, anchor=anchor)
+                state, pts, ids, wts, targets_are_joints, n, fix_shape, s0, anchor=anchor,
+                tangent_weight=tw)
             if not warm and cfg.flip_restart and not targets_are_joints:
                 # Depth-only correspondences can confuse front and back: when the fit
                 # leaves a large residual, also try the init turned 180 deg about the
                 # body's vertical axis and keep the lower energy.
                 if np.sqrt(np.median(sq)) > cfg.flip_residual_m:
                     alt, en2, it2, sq2 = self._levenberg_marquardt(
-                        self._flipped(start, pts), pts, ids, wts, False, n, fix_shape, s0)
+                        self._flipped(start, pts), pts, ids, wts, False, n, fix_shape, s0,
+                        tangent_weight=tw)
                     if en2 < en:
                         state, sq = alt, sq2
                     iters += it2
@@ -526,7 +531,7 @@ class Fitter:
                 # "in free space" and the pulls would only scramble the pose).
                 state, _, it2, sq = self._levenberg_marquardt(
                     state, pts, ids, wts, False, cfg.free_space_iterations, True, None,
-                    free_space, anchor=anchor)
+                    free_space, anchor=anchor, tangent_weight=tw)
                 iters += it2
         else:
             raise ValueError(f"unknown solver {solver!r} (expected 'fast', 'lbfgs' or 'none')")
@@ -600,7 +605,8 @@ class Fitter:
 
     def _levenberg_marquardt(self, state, pts, ids, wts, joints: bool, iterations: int,
                              fix_shape: bool, sigma_start: float | None = None,
-                             free: FreeSpace | None = None, anchor=None):
+                             free: FreeSpace | None = None, anchor=None,
+                             tangent_weight: float | None = None):
         """IRLS / Levenberg-Marquardt on the robust objective.
 
         Rotations are updated multiplicatively (R_j <- exp(delta_j) R_j) with the analytic
@@ -610,7 +616,8 @@ class Fitter:
         cfg.free_space_weight per mesh vertex) to their nearest hiding place, found again
         at every evaluated state (ICP-style). With `anchor` = (rotations (P + 1, 3, 3),
         weight), every joint's rotation away from the anchor's costs weight * angle^2 (the
-        temporal prior of tracking). Returns (state, energy at the final scale,
+        temporal prior of tracking). `tangent_weight`: cfg.tangent_weight unless given.
+        Returns (state, energy at the final scale,
         iterations, squared residuals at that state).
         """
         cfg, rig = self.cfg, self.rig
@@ -638,7 +645,8 @@ class Fitter:
         # Free-space targets (when given) count as support too: they do constrain a limb.
         support = self._joint_support(prob[5], wts) if not joints else None
         mu, prev, prev_sigma, it = 1e-3, None, None, 0
-        aniso = cfg.tangent_weight < 1 and not joints
+        tw = cfg.tangent_weight if tangent_weight is None else tangent_weight
+        aniso = tw < 1 and not joints
         for it in range(1, iterations + 1):
             free_shape = not fix_shape and it > hold
             n = n_rot + 3 + (S if free_shape else 0)
@@ -650,7 +658,7 @@ class Fitter:
                 # A vertex that faces away from the camera cannot have been observed: a
                 # point on it is a wrong correspondence (IRLS weight only, like the GM's).
                 v = pts + e
-                sq, e, nrm = self._anisotropic(e, prob[5], G, ids)
+                sq, e, nrm = self._anisotropic(e, prob[5], G, ids, tw)
                 facing = np.where((nrm * v).sum(-1) > 0, cfg.back_facing_weight, 1.0)
             fterm = self._free_space_term(state, prob, G, x, free) if free else None
             sigma = sigma_at(it)
@@ -683,7 +691,7 @@ class Fitter:
                 # r = A e_raw with A = a I + (1 - a) n n^T (symmetric): the Gauss-Newton
                 # system of r is J^T A^2 J = a^2 J^T J + (1 - a^2) (n.J)^T (n.J) and
                 # J^T A r, without forming A J.
-                a = cfg.tangent_weight
+                a = tw
                 Jn = np.einsum('nd,ndk->nk', nrm, Jd)
                 H *= a * a
                 H += (1 - a * a) * (Jn.T @ Jn)
@@ -733,7 +741,7 @@ class Fitter:
         prob = self._problem(state[2], ids, joints)
         sq, e, G, x, _ = self._evaluate(state, pts, ids, joints, prob)
         if aniso:
-            sq = self._anisotropic(e, prob[5], G, ids)[0]
+            sq = self._anisotropic(e, prob[5], G, ids, tw)[0]
         en = self._energy_terms(state, sq, wts, s_end)[0]
         if free:
             en += self._free_space_term(state, prob, G, x, free)[0]
@@ -778,13 +786,12 @@ class Fitter:
         _, e, _, _, WQ = self._evaluate(state, tgt, ids, False, prob_f)
         return w * float((e * e).sum()), w, e, prob_f, WQ
 
-    def _anisotropic(self, e, W, G, ids):
-        """Residuals with their component along the surface scaled by tangent_weight:
-        a = tangent_weight, r = a e + (1 - a) n (n . e) with n the posed vertex normal."""
+    def _anisotropic(self, e, W, G, ids, a: float):
+        """Residuals with their component along the surface scaled by the tangent weight
+        a: r = a e + (1 - a) n (n . e) with n the posed vertex normal."""
         M = (W @ G.reshape(len(G), 9)).reshape(len(e), 3, 3)
         n = np.einsum('nij,nj->ni', M, self._rest_normals[ids])
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-        a = self.cfg.tangent_weight
         r = a * e + (1 - a) * n * (n * e).sum(-1, keepdims=True)
         return (r * r).sum(-1), r, n
 

@@ -97,6 +97,9 @@ _CORE_DOC = {
     'fit.lost_residual_m': 'fitting: median residual above which the track is lost (m)',
     'fit.icp_rounds': 'fitting: part-constrained nearest-vertex refinements after the '
                       'correspondence fit (0 = none)',
+    'fit.icp_tangent_weight': 'fitting: weight of the residual along the surface in the '
+                              'refits to those nearest-vertex correspondences (0 = point '
+                              'to plane, 1 = point to point)',
     'fit.tracking_icp_rounds': 'fitting: the same refinements on tracked frames (on their '
                                'warm fit; 0 = none, faster)',
     'fit.segment_init': 'fitting: cold fits start from per-segment closed-form rotations',
@@ -135,7 +138,7 @@ _FLOAT_RANGES = {
     'fit.lost_residual_m': (0.0, 10.0), 'fit.min_joint_support': (0.0, 1e6),
     'fit.flip_residual_m': (0.0, 10.0), 'reject_residual_m': (0.0, 10.0),
     'model_label_margin_m': (0.0, 1.0), 'model_label_keep_network_m': (0.0, 1.0),
-    'fit.lambda_temporal': (0.0, 1e6),
+    'fit.lambda_temporal': (0.0, 1e6), 'fit.icp_tangent_weight': (0.0, 1.0),
 }
 _INT_RANGES = {
     'qos_depth': (1, 1000), 'cpu_threads': (0, 1024), 'max_persons': (1, 100),
