@@ -154,6 +154,11 @@ def _coerce(name: str, value, default):
             raise ProcessBagError(f'parameter {name} must be an integer, got {value!r}')
         return value
     if isinstance(default, float):
+        if isinstance(value, str):  # YAML 1.1 reads 1e-5 (no dot) as a string; ROS doesn't
+            try:
+                value = float(value)
+            except ValueError:
+                pass
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ProcessBagError(f'parameter {name} must be a number, got {value!r}')
         return float(value)

@@ -438,6 +438,10 @@ def test_params_file_and_overrides(tmp_path):
     over = parse_param_overrides(['tracking=false', 'fit.solver:=lbfgs', 'mesh_decimation=0.5'])
     cfg, opts, _ = config_from_params(over)
     assert cfg.tracking is False and cfg.fit.solver == 'lbfgs' and opts['mesh_decimation'] == 0.5
+    cfg, _, _ = config_from_params(parse_param_overrides(['fit.lambda_shape=1e-5']))
+    assert cfg.fit.lambda_shape == 1e-5  # a string to YAML 1.1, a number to ROS
+    with pytest.raises(ProcessBagError, match='number'):
+        config_from_params({'fit.lambda_shape': 'abc'})
     with pytest.raises(ProcessBagError, match='unknown parameter'):
         config_from_params({'fit.iteratons': 3})
     with pytest.raises(ProcessBagError, match='integer'):
