@@ -40,8 +40,10 @@ class FitConfig:
     min_joint_support: float = 3.0    # joints moving fewer targets (skinning weight) are
                                       # held in place: an unseen limb keeps its pose
     lost_residual_m: float = 0.06     # median residual above which the track is lost
-    icp_rounds: int = 1               # part-constrained nearest-vertex refinements after
+    icp_rounds: int = 2               # part-constrained nearest-vertex refinements after
                                       # the Eq. 2 fit (0 = the paper's single fit)
+    icp_margin_m: float = 0.03        # their refits also take the pixels the network left
+                                      # out that lie this close to the fitted mesh (0 = off)
     icp_tangent_weight: float = 0.05  # tangent_weight of the refits to those nearest-vertex
                                       # correspondences, which say nothing along the surface
                                       # (point to plane; 0.5: val_s2 41.6 -> 38.8 mm)

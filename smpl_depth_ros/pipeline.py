@@ -253,10 +253,13 @@ class Reconstructor:
                     split_done.update(id(h) for h in halves)
                     crops.extend(halves)
                 continue
-            # ICP inside the predicted parts on this frame's fitted mesh, then a refit.
+            # ICP inside the predicted parts on this frame's fitted mesh, then a refit, to
+            # which the pixels the network left out join where they lie on the mesh.
             for _ in range(cfg.fit.tracking_icp_rounds if tracked else cfg.fit.icp_rounds):
                 vids = self._refine_correspondences(pts, vids, fit.vertices)
-                fit = self.fitter.fit(pts, vids, init=fit.params, fix_shape=False,
+                xp, xv = self._near_surface_pixels(d, K, fit.vertices, r, c, crop)
+                fit = self.fitter.fit(np.concatenate([pts, xp]), np.concatenate([vids, xv]),
+                                      init=fit.params, fix_shape=False,
                                       iterations=cfg.fit.tracking_iterations,
                                       free_space=free,
                                       tangent_weight=cfg.fit.icp_tangent_weight)
@@ -331,6 +334,42 @@ class Reconstructor:
             m = pp == p
             out[m] = vi[cKDTree(vertices[vi]).query(pts[m])[1]]
         return out
+
+    def _near_surface_pixels(self, d, K, vertices, r, c, crop):
+        """Pixels the network did not give the person that lie within
+        fit.icp_margin_m of its fitted mesh (a hand, the edge of an arm the network
+        called background), with their nearest fitted vertex: (N, 3) float32 points,
+        (N,) vertex ids. Looked for around the mesh's projection; `r, c` are the person's
+        pixels already in the fit; other candidates' blobs and the scene planes
+        (PLANE_M, the floor under a foot) are left out."""
+        margin = float(self.config.fit.icp_margin_m)
+        none = np.zeros((0, 3), np.float32), np.zeros(0, np.int64)
+        ids = self._valid_vertex_ids
+        V = vertices[ids]
+        if margin <= 0 or not len(V) or V[:, 2].min() <= 0:
+            return none
+        H, W = d.shape
+        uv = V @ K.T
+        uv = uv[:, :2] / uv[:, 2:]
+        u0, v0 = np.clip(np.floor(uv.min(0)).astype(int) - 2, 0, (W, H))
+        u1, v1 = np.clip(np.ceil(uv.max(0)).astype(int) + 3, 0, (W, H))
+        if u1 <= u0 or v1 <= v0:
+            return none
+        win = d[v0:v1, u0:u1]
+        cand = (win > V[:, 2].min() - margin) & (win < V[:, 2].max() + margin)
+        inside = (r >= v0) & (r < v1) & (c >= u0) & (c < u1)
+        cand[r[inside] - v0, c[inside] - u0] = False
+        if crop.exclude is not None:
+            cand &= ~crop.exclude[v0:v1, u0:u1]
+        rr, cc = np.nonzero(cand)
+        P = pixel_points(rr + v0, cc + u0, win[rr, cc], K)
+        for pl in crop.planes:
+            P = P[np.abs(P @ pl[:3] - pl[3]) > PLANE_M]
+        if not len(P):
+            return none
+        dist, idx = cKDTree(V).query(P, distance_upper_bound=margin)
+        ok = np.isfinite(dist)
+        return P[ok].astype(np.float32), ids[idx[ok]]
 
     def _fit(self, pts, vids, stamp_ns, first: bool, free=None):
         """Fit one person: warm-started from the previous frame while the track holds

@@ -239,3 +239,40 @@ def test_candidates_are_scored_on_their_own_blob_not_their_crop():
     half = labels.copy()
     half[:, : labels.shape[1] // 2] = 0
     assert body_score(crop, valid, half, (H, W)) < 0.75 * 3.0
+
+
+def test_icp_refit_takes_the_body_pixels_the_network_left_out(rec, monkeypatch):
+    """_near_surface_pixels: with the true mesh as the fit and half the person's pixels
+    (and a whole arm) left out as if the network had missed them, it returns body pixels
+    the network did not have, nearly all of the missed ones within the margin of a vertex,
+    each with its nearest vertex, none already in the fit, none on the floor; nothing
+    with the margin at 0."""
+    from scipy.spatial import cKDTree
+
+    from smpl_depth_ros.net.preprocess import find_persons, pixel_points
+    f = _frame(rec, 9)
+    d, K, V, lab = f['depth'], f['K'], f['vertices'], f['labels']
+    crop = find_persons(d, K, 0.5, 6.0, 400, 3)[0]
+    assert crop.planes  # the frame has a floor
+    rr, cc = np.nonzero((lab > 0) & (d > 0))
+    keep = (np.arange(len(rr)) % 2 == 0) & ~np.isin(lab[rr, cc], (5, 7))  # arm, hand
+    r, c = rr[keep], cc[keep]
+    pts, vids = rec._near_surface_pixels(d, K, V, r, c, crop)
+    assert len(pts) and pts.dtype == np.float32 and vids.shape == (len(pts),)
+    u = np.rint(pts[:, 0] * K[0, 0] / pts[:, 2] + K[0, 2]).astype(int)
+    v = np.rint(pts[:, 1] * K[1, 1] / pts[:, 2] + K[1, 2]).astype(int)
+    got = set(zip(v.tolist(), u.tolist()))
+    assert not got & set(zip(r.tolist(), c.tolist()))
+    assert (lab[v, u] > 0).mean() > 0.95
+    valid = rec._valid_vertex_ids
+    # Nearly every missed body pixel within the margin of a vertex (the vertices are ~3 cm
+    # apart, and the depth noise at 4.5 m is a few cm: about half of them).
+    near = cKDTree(V[valid]).query(pixel_points(rr[~keep], cc[~keep], d[rr[~keep], cc[~keep]],
+                                                K))[0] <= rec.config.fit.icp_margin_m
+    missed = set(zip(rr[~keep][near].tolist(), cc[~keep][near].tolist()))
+    assert len(missed) > 500 and len(got & missed) > 0.9 * len(missed)
+    assert np.array_equal(vids, valid[cKDTree(V[valid]).query(pts)[1]])
+    for pl in crop.planes:
+        assert (np.abs(pts @ pl[:3] - pl[3]) > 0.02).all()
+    monkeypatch.setattr(rec, 'config', rec.config.with_overrides(icp_margin_m=0.0))
+    assert len(rec._near_surface_pixels(d, K, V, r, c, crop)[0]) == 0

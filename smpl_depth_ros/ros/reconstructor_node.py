@@ -97,6 +97,8 @@ _CORE_DOC = {
     'fit.lost_residual_m': 'fitting: median residual above which the track is lost (m)',
     'fit.icp_rounds': 'fitting: part-constrained nearest-vertex refinements after the '
                       'correspondence fit (0 = none)',
+    'fit.icp_margin_m': 'fitting: those refits also take the pixels the network left out '
+                        'that lie this close to the fitted mesh (m; 0 = off)',
     'fit.icp_tangent_weight': 'fitting: weight of the residual along the surface in the '
                               'refits to those nearest-vertex correspondences (0 = point '
                               'to plane, 1 = point to point)',
@@ -139,6 +141,7 @@ _FLOAT_RANGES = {
     'fit.flip_residual_m': (0.0, 10.0), 'reject_residual_m': (0.0, 10.0),
     'model_label_margin_m': (0.0, 1.0), 'model_label_keep_network_m': (0.0, 1.0),
     'fit.lambda_temporal': (0.0, 1e6), 'fit.icp_tangent_weight': (0.0, 1.0),
+    'fit.icp_margin_m': (0.0, 1.0),
 }
 _INT_RANGES = {
     'qos_depth': (1, 1000), 'cpu_threads': (0, 1024), 'max_persons': (1, 100),
