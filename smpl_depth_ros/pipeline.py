@@ -229,9 +229,7 @@ class Reconstructor:
             vids = self.net.lookup(lab[i], coords[i], fg)
             rr, cc, _ = crop.sample_indices(d.shape)
             r, c = rr[fg], cc[fg]
-            z = d[r, c].astype(np.float64)
-            pts = np.stack([(c - K[0, 2]) * z / K[0, 0], (r - K[1, 2]) * z / K[1, 1], z],
-                           1).astype(np.float32)
+            pts = pixel_points(r, c, d[r, c], K).astype(np.float32)
             tf = time.perf_counter()
             timings['correspondence'] += (tf - tc) * 1e3
             free = None
@@ -239,8 +237,9 @@ class Reconstructor:
                 side = crop.scale * crop.size
                 box = (crop.u0 - side / 4, crop.v0 - side / 4, crop.u0 + 1.25 * side,
                        crop.v0 + 1.25 * side)
-                free = FreeSpace(d, K, float(np.median(z)), cfg.fit.free_space_margin,
-                                 box=box, planes=supporting_planes(crop.planes, pts))
+                zmed = float(np.median(d[r, c].astype(np.float64)))
+                free = FreeSpace(d, K, zmed, cfg.fit.free_space_margin, box=box,
+                                 planes=supporting_planes(crop.planes, pts))
             fit, vids, tracked = self._fit(pts, vids, stamp_ns, not persons, free)
             if fit.median_residual > cfg.reject_residual_m:
                 # The body model cannot explain this blob: not a person (or a failed fit),
