@@ -58,7 +58,9 @@ def test_recovers_known_parameters(body, seed):
     r = fit.fit(V[front], front)
     assert _pve(r, V) < 0.003, _pve(r, V)  # all 1,229 vertices, incl. the unseen back
     assert np.linalg.norm(r.joints - J, axis=1).mean() < 0.003
-    assert np.linalg.norm(r.params.transl - tr) < 0.005
+    # The root's offset trades against the spine too: 5.9 mm for seed 2, whose collars
+    # (~8 deg off rest) the weak-joint prior holds back a little (mesh still within 3 mm).
+    assert np.linalg.norm(r.params.transl - tr) < 0.008
     turn = Rotation.from_rotvec(r.params.global_orient).inv() * Rotation.from_rotvec(go)
     # The root trades a few degrees against the spine at a sub-millimetre mesh error
     # (seed 2: 2.5 deg point to point, 5.1 deg with the default tangent_weight).
@@ -111,6 +113,26 @@ def test_solver_jacobian_matches_finite_differences(body):
     assert np.abs(J - num).max() < 1e-6 * max(np.abs(num).max(), 1.0), np.abs(J - num).max()
 
 
+def test_weak_joints_hold_a_hand_against_scattered_correspondences(body):
+    """The hands' correspondences scattered inside the hand (the network's regressed
+    coordinates are noisiest there): without lambda_pose_weak the wrists rotate to follow
+    the noise; with it they stay near rest and the hands land near the truth. Exact data
+    still bends them: test_recovers_known_parameters."""
+    parts = body.part_labels.numpy()
+    assert objective.weak_joint_mask(body).sum() == 4  # two collars, two wrists
+    for seed in (2, 3):
+        rng, V, _, front = _scene(body, seed)
+        pts = V[front] + rng.normal(0, 0.005, (len(front), 3)).astype(np.float32)
+        ids = front.copy()
+        for h in (7, 8):  # hand_l, hand_r
+            m = parts[front] == h
+            ids[m] = rng.choice(np.flatnonzero(parts == h), m.sum())
+        hands = np.isin(parts, (7, 8))
+        err = {w: np.linalg.norm(Fitter(body, FitConfig(lambda_pose_weak=w)).fit(pts, ids)
+                                 .vertices - V, axis=1)[hands].mean() for w in (0.0, 3e-5)}
+        assert err[3e-5] < 0.6 * err[0.0], (seed, err)
+
+
 def test_robust_to_wrong_correspondences(body):
     rng, V, _, front = _scene(body, 6)
     pts = V[front] + rng.normal(0, 0.005, (len(front), 3)).astype(np.float32)
@@ -136,7 +158,8 @@ def test_unseen_limb_is_held_not_swung_by_stray_points(body):
     ids = np.concatenate([seen, hand[:3]])
     err, pull = {}, {}
     for k in (0.0, 5.0):
-        r = Fitter(body, FitConfig(min_joint_support=k)).fit(pts, ids)
+        # (lambda_pose_weak off: holding the collar and wrist resists the strays too.)
+        r = Fitter(body, FitConfig(min_joint_support=k, lambda_pose_weak=0.0)).fit(pts, ids)
         err[k] = np.linalg.norm(r.vertices - V, axis=1)[~arm].mean()
         pull[k] = np.linalg.norm(r.vertices[hand[:3]] - pts[-3:], axis=1).mean()
     assert err[5.0] < 0.01 and err[0.0] < 0.01, err
@@ -158,8 +181,10 @@ def test_tangent_weight_resists_correspondences_biased_inwards(body):
         m = parts[front] == p
         inward = V[front[m]] + 0.3 * (V[pv].mean(0) - V[front[m]])
         ids[m] = pv[cKDTree(V[pv]).query(inward)[1]]
-    err = {a: _pve(Fitter(body, FitConfig(tangent_weight=a)).fit(V[front], ids), V)
-           for a in (1.0, 0.5)}
+    # Each mechanism alone: the weak-joint prior (lambda_pose_weak) also resists such
+    # biased correspondences at the wrists and collars, and is off here.
+    err = {a: _pve(Fitter(body, FitConfig(tangent_weight=a, lambda_pose_weak=0.0))
+                   .fit(V[front], ids), V) for a in (1.0, 0.5)}
     assert err[0.5] < 0.7 * err[1.0], err
 
 
@@ -196,8 +221,8 @@ def test_correspondences_on_the_far_side_are_discounted(body):
         cand = np.flatnonzero(back & (parts == parts[front[k]]))
         if len(cand):
             ids[k] = cand[rng.integers(len(cand))]
-    err = {w: _pve(Fitter(body, FitConfig(back_facing_weight=w)).fit(V[front], ids), V)
-           for w in (1.0, 0.1)}
+    err = {w: _pve(Fitter(body, FitConfig(back_facing_weight=w, lambda_pose_weak=0.0))
+                   .fit(V[front], ids), V) for w in (1.0, 0.1)}  # this mechanism alone
     assert err[0.1] < 0.8 * err[1.0], err
 
 

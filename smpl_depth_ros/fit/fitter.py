@@ -335,6 +335,12 @@ class Fitter:
         # Rest vertices at the mean shape: the template for the target consistency check.
         self._template = self._rest(self.rig.shape_mean)[1]
         self._rest_normals = _vertex_normals(self._template, body.faces_numpy())
+        self._weak = objective.weak_joint_mask(body).astype(np.float64)
+
+    def _pose_l2_weights(self) -> np.ndarray:
+        """(P,) weight per pose joint of its pull towards rest (per rad^2):
+        cfg.lambda_pose_l2, plus cfg.lambda_pose_weak for the weakly observed joints."""
+        return self.cfg.lambda_pose_l2 + self.cfg.lambda_pose_weak * self._weak
 
     # ------------------------------------------------------------------ helpers
     def _rest(self, shape: np.ndarray):
@@ -567,7 +573,7 @@ class Fitter:
         rho = objective.geman_mcclure(sq, sigma)
         data = rho.mean() if wts is None else (rho * wts).sum() / wts.sum()
         en = (cfg.lambda_data * data + cfg.lambda_pose * (viol ** 2).sum()
-              + cfg.lambda_pose_l2 * (aa ** 2).sum()
+              + (self._pose_l2_weights()[:, None] * aa ** 2).sum()
               + cfg.lambda_shape * (((shape - rig.shape_mean) / rig.shape_std) ** 2).sum())
         return float(en), float(data), aa, viol
 
@@ -632,7 +638,8 @@ class Fitter:
         P = len(rig.jb) - 1
         S = len(rig.shape_mean)
         n_rot = 3 * (P + 1)
-        lam_p, lam_l2, lam_s = cfg.lambda_pose, cfg.lambda_pose_l2, cfg.lambda_shape
+        lam_p, lam_s = cfg.lambda_pose, cfg.lambda_shape
+        lam_l2 = self._pose_l2_weights()[:, None, None]  # (P, 1, 1)
         N = len(pts)
         wsum = float(N) if wts is None else float(wts.sum())
         prob = self._problem(state[2], ids, joints)
@@ -706,7 +713,7 @@ class Fitter:
             out = (viol != 0).astype(np.float64)
             Jp = out[..., None] * rig.C[None]  # (P, 3, 3), sign irrelevant in H
             Hp = lam_p * Jp.transpose(0, 2, 1) @ Jp + lam_l2 * np.eye(3)
-            gp = lam_p * (-Jp.transpose(0, 2, 1) @ viol[..., None])[..., 0] + lam_l2 * aa
+            gp = lam_p * (-Jp.transpose(0, 2, 1) @ viol[..., None])[..., 0] + lam_l2[..., 0] * aa
             for j in range(P):
                 b = 3 + 3 * j
                 H[b:b + 3, b:b + 3] += Hp[j]

@@ -78,6 +78,8 @@ _CORE_DOC = {
     'fit.lambda_data': 'fitting: data term weight',
     'fit.lambda_pose': 'fitting: joint-limit prior weight',
     'fit.lambda_pose_l2': 'fitting: pull of every joint towards rest',
+    'fit.lambda_pose_weak': 'fitting: pull of the collars and wrists towards rest (per '
+                            'rad^2; joints a depth image hardly observes)',
     'fit.lambda_shape': 'fitting: shape prior weight',
     'fit.gm_sigma': 'fitting: Geman-McClure scale (metres)',
     'fit.gm_sigma_start': 'fitting: cold fits start with this wider scale and anneal to '
@@ -141,7 +143,7 @@ _FLOAT_RANGES = {
     'fit.flip_residual_m': (0.0, 10.0), 'reject_residual_m': (0.0, 10.0),
     'model_label_margin_m': (0.0, 1.0), 'model_label_keep_network_m': (0.0, 1.0),
     'fit.lambda_temporal': (0.0, 1e6), 'fit.icp_tangent_weight': (0.0, 1.0),
-    'fit.icp_margin_m': (0.0, 1.0),
+    'fit.icp_margin_m': (0.0, 1.0), 'fit.lambda_pose_weak': (0.0, 1e6),
 }
 _INT_RANGES = {
     'qos_depth': (1, 1000), 'cpu_threads': (0, 1024), 'max_persons': (1, 100),
