@@ -37,6 +37,16 @@ def procrustes(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
     return s * p @ R + mg
 
 
+def part_errors(pred: np.ndarray, gt: np.ndarray, part_of: np.ndarray, n: int = 15
+                ) -> np.ndarray:
+    """(n - 1,) mean per-vertex error (m) of each body part (background excluded; NaN
+    for a part without vertices)."""
+    e = np.linalg.norm(np.asarray(pred, np.float64) - gt, axis=-1)
+    s = np.bincount(part_of, e, n)[1:]
+    c = np.bincount(part_of, None, n)[1:]
+    return np.where(c > 0, s / np.maximum(c, 1), np.nan)
+
+
 def pa_pve(pred, gt, valid=None) -> float:
     return pve(procrustes(pred, gt), gt, valid)
 

@@ -52,6 +52,25 @@ def test_camera_presets():
                                         -1).reshape(-1, 2), atol=1e-9)
 
 
+def test_head_turns_are_drawn_only_when_asked(body):
+    """head_turn_deg widens the neck and head yaw within the joint limits; off, the
+    random stream is exactly the default one (earlier bags and training runs)."""
+    plain = PoseSampler(body)
+    n = plain.names
+    off = PoseSampler(body, head_turn_deg=0.0)
+    r0, r1 = np.random.default_rng(3), np.random.default_rng(3)
+    assert all(np.array_equal(plain.sample_canonical(r0), off.sample_canonical(r1))
+               for _ in range(5))
+    turned = PoseSampler(body, head_turn_deg=35)
+    rng0, rng1 = np.random.default_rng(4), np.random.default_rng(4)
+    yaw = {k: np.array([[s.sample_canonical(r)[n.index(j), 1] for j in ('neck', 'head')]
+                        for _ in range(300)])
+           for k, s, r in (('plain', plain, rng0), ('turned', turned, rng1))}
+    assert yaw['turned'].std() > 2 * yaw['plain'].std()
+    lim = plain.limits[[n.index('neck'), n.index('head')], 1]
+    assert (yaw['turned'] >= lim[:, 0] - 1e-9).all() and (yaw['turned'] <= lim[:, 1] + 1e-9).all()
+
+
 def test_render_plane_exact():
     # A slanted square: z = 2 + 0.3 x, checked in closed form at every pixel.
     v = np.array([[-1, -1, 1.7], [1, -1, 2.3], [1, 1, 2.3], [-1, 1, 1.7]], np.float64)

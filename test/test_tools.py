@@ -32,6 +32,15 @@ def test_evaluate_writes_table_ii_json(bag, tmp_path):
         assert len(frames) == 3 - row['failures'] and frames[0][0] >= 0, name
         assert abs(np.mean([v for _, v in frames]) - row['pve_mm']) < 0.01, name
     assert 'pve_mm_frames' not in res  # the main row's are in its ablation entry
+    # Per part: weighted by the parts' vertex counts, the part errors make the PVE.
+    from smpl_depth_ros.body import load_body_model
+    from smpl_depth_ros.body.parts import PART_NAMES
+    counts = np.bincount(load_body_model('anny').part_labels.numpy(), minlength=15)[1:]
+    for name, row in res['ablation'].items():
+        parts = row['pve_mm_parts']
+        assert list(parts) == list(PART_NAMES[1:]), name
+        weighted = sum(c * parts[n] for c, n in zip(counts, PART_NAMES[1:])) / counts.sum()
+        assert abs(weighted - row['pve_mm']) < 0.05, (name, weighted, row['pve_mm'])
     assert (tmp_path / 'fig' / 'fig3_0000.png').exists()
 
 

@@ -35,6 +35,7 @@ class SampleConfig:
     truncate: float = 0.5            # probability of seeing the body as the sensor does:
                                      # the crop around its part inside the sensor image,
                                      # pixels outside that image empty (close range)
+    head_turn_deg: float = 0.0       # PoseSampler's head turns (0: the templates' own)
 
 
 def crop_noise_params(scale: float) -> NoiseParams:
@@ -83,7 +84,7 @@ class SampleMaker:
     def __init__(self, body, cfg: SampleConfig = SampleConfig()):
         self.body = body
         self.cfg = cfg
-        self.sampler = PoseSampler(body)
+        self.sampler = PoseSampler(body, head_turn_deg=cfg.head_turn_deg)
         self.faces = body.faces_numpy()
         self.parts = body.part_labels.cpu().numpy()
         emb = template_embedding(body.canonical_vertices(), self.parts)

@@ -145,6 +145,9 @@ def main(argv=None):
                     help='weight each body part\'s cross-entropy by (its pixel share / the '
                          'largest part\'s)^-POWER, the background as the largest part '
                          '(0: plain cross-entropy; the shipped stage 4 used 0.4)')
+    ap.add_argument('--head-turn', type=float, default=0.0, metavar='DEG',
+                    help='also turn the heads of the training and validation bodies '
+                         '(PoseSampler head_turn_deg; default 0: the pose templates only)')
     ap.add_argument('--workers', type=int, default=max(1, (os.cpu_count() or 2) - 1))
     ap.add_argument('--device', default='auto', choices=['auto', 'cpu', 'cuda'])
     ap.add_argument('--seed', type=int, default=7)
@@ -164,7 +167,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
 
     from smpl_depth_ros.body import load_body_model
-    from smpl_depth_ros.net.data import SyntheticDataset, make_fixed_set
+    from smpl_depth_ros.net.data import SampleConfig, SyntheticDataset, make_fixed_set
     from smpl_depth_ros.net.unet import INPUT_SIZE, build_network
 
     device = torch.device('cuda' if args.device == 'auto' and torch.cuda.is_available()
@@ -195,12 +198,13 @@ def main(argv=None):
 
     body = body_factory()
     t_val = time.time()
-    val = make_fixed_set(body, args.val_size, args.val_seed)
+    scfg = SampleConfig(head_turn_deg=args.head_turn)
+    val = make_fixed_set(body, args.val_size, args.val_seed, scfg)
     print(f'validation set: {args.val_size} samples in {time.time() - t_val:.1f} s',
           file=sys.stderr)
     cw = class_weights(val[1], args.class_balance)
     cw = None if cw is None else cw.to(device)
-    ds = SyntheticDataset(body_factory, seed=args.seed * 1000 + step)
+    ds = SyntheticDataset(body_factory, seed=args.seed * 1000 + step, cfg=scfg)
     dl = torch.utils.data.DataLoader(ds, batch_size=args.batch, num_workers=args.workers,
                                      pin_memory=device.type == 'cuda',
                                      persistent_workers=args.workers > 0,

@@ -52,6 +52,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument('--rate', type=float, default=30.0, help='frame rate for the stamps (Hz)')
     ap.add_argument('--sequence', action='store_true',
                     help='smooth motion of one person instead of independent frames')
+    ap.add_argument('--head-turn', type=float, default=0.0, metavar='DEG',
+                    help='also turn the heads: yaw up to +-DEG at the neck and again at the '
+                         'head, pitch up to +-DEG/2 (default 0: the pose templates only)')
     ap.add_argument('--no-noise', action='store_true', help='exact depth (mm-rounded by 16UC1)')
     ap.add_argument('--no-background', action='store_true', help='the person only')
     ap.add_argument('--encoding', default='16UC1', choices=['16UC1', '32FC1'])
@@ -90,7 +93,7 @@ def main(argv=None) -> int:
         print(f'synth_bag: {e}', file=sys.stderr)
         return 2
     camera = get_camera(args.camera, args.width, args.height)
-    sampler = PoseSampler(body)
+    sampler = PoseSampler(body, head_turn_deg=args.head_turn)
     rng = np.random.default_rng(args.seed)
     noise, bg = not args.no_noise, not args.no_background
     N, H, W = args.frames, camera.height, camera.width
