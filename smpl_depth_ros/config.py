@@ -14,7 +14,7 @@ class FitConfig:
 
     lambda_data: float = 1.0          # lambda_D
     lambda_pose: float = 1e-3         # lambda_theta: joint-limit prior weight (per rad^2)
-    lambda_pose_l2: float = 1e-7      # weak pull of every joint towards rest
+    lambda_pose_l2: float = 1e-6      # weak pull of every joint towards rest (per rad^2)
     lambda_pose_weak: float = 3e-5    # pull of the collars and wrists towards rest (per
                                       # rad^2): joints a depth image hardly observes
     lambda_shape: float = 1e-6        # lambda_beta (per squared standard deviation)

@@ -36,6 +36,13 @@ def _scene(body, seed, with_params=False):
     return rng, V, out.joints[0].numpy(), front
 
 
+# The pose priors as weak as they were before stop 19 (fit.lambda_pose_l2 1e-7, no extra
+# pull of the collars and wrists): the tests of one mechanism against corrupted
+# correspondences use them, since the priors resist such errors too and would hide what
+# the mechanism alone does.
+WEAK_PRIORS = dict(lambda_pose_l2=1e-7, lambda_pose_weak=0.0)
+
+
 def _pve(r, V):
     return float(np.linalg.norm(r.vertices - V, axis=1).mean())
 
@@ -56,15 +63,19 @@ def test_recovers_known_parameters(body, seed):
     rng, V, J, front, (go, tr) = _scene(body, seed, with_params=True)
     fit = Fitter(body)
     r = fit.fit(V[front], front)
-    assert _pve(r, V) < 0.003, _pve(r, V)  # all 1,229 vertices, incl. the unseen back
-    assert np.linalg.norm(r.joints - J, axis=1).mean() < 0.003
+    # All 1,229 vertices, incl. the unseen back. The pose priors pull a little even against
+    # exact data: seed 2's joints end 3.05 mm off on average (under 3 mm with stop 18's
+    # weaker priors).
+    assert _pve(r, V) < 0.004, _pve(r, V)
+    assert np.linalg.norm(r.joints - J, axis=1).mean() < 0.004
     # The root's offset trades against the spine too: 5.9 mm for seed 2, whose collars
     # (~8 deg off rest) the weak-joint prior holds back a little (mesh still within 3 mm).
     assert np.linalg.norm(r.params.transl - tr) < 0.008
     turn = Rotation.from_rotvec(r.params.global_orient).inv() * Rotation.from_rotvec(go)
     # The root trades a few degrees against the spine at a sub-millimetre mesh error
-    # (seed 2: 2.5 deg point to point, 5.1 deg with the default tangent_weight).
-    assert np.degrees(turn.magnitude()) < 7.0
+    # (seed 2: 2.5 deg point to point, 5.1 deg with the default tangent_weight, 8.2 deg
+    # with stop 19's pose priors pulling the spine towards rest).
+    assert np.degrees(turn.magnitude()) < 10.0
     assert r.median_residual < 0.002 and np.isfinite(r.energy)
     noisy = V[front] + rng.normal(0, 0.005, (len(front), 3)).astype(np.float32)
     assert _pve(fit.fit(noisy, front), V) < 0.015
@@ -158,8 +169,7 @@ def test_unseen_limb_is_held_not_swung_by_stray_points(body):
     ids = np.concatenate([seen, hand[:3]])
     err, pull = {}, {}
     for k in (0.0, 5.0):
-        # (lambda_pose_weak off: holding the collar and wrist resists the strays too.)
-        r = Fitter(body, FitConfig(min_joint_support=k, lambda_pose_weak=0.0)).fit(pts, ids)
+        r = Fitter(body, FitConfig(min_joint_support=k, **WEAK_PRIORS)).fit(pts, ids)
         err[k] = np.linalg.norm(r.vertices - V, axis=1)[~arm].mean()
         pull[k] = np.linalg.norm(r.vertices[hand[:3]] - pts[-3:], axis=1).mean()
     assert err[5.0] < 0.01 and err[0.0] < 0.01, err
@@ -181,9 +191,7 @@ def test_tangent_weight_resists_correspondences_biased_inwards(body):
         m = parts[front] == p
         inward = V[front[m]] + 0.3 * (V[pv].mean(0) - V[front[m]])
         ids[m] = pv[cKDTree(V[pv]).query(inward)[1]]
-    # Each mechanism alone: the weak-joint prior (lambda_pose_weak) also resists such
-    # biased correspondences at the wrists and collars, and is off here.
-    err = {a: _pve(Fitter(body, FitConfig(tangent_weight=a, lambda_pose_weak=0.0))
+    err = {a: _pve(Fitter(body, FitConfig(tangent_weight=a, **WEAK_PRIORS))
                    .fit(V[front], ids), V) for a in (1.0, 0.5)}
     assert err[0.5] < 0.7 * err[1.0], err
 
@@ -221,8 +229,8 @@ def test_correspondences_on_the_far_side_are_discounted(body):
         cand = np.flatnonzero(back & (parts == parts[front[k]]))
         if len(cand):
             ids[k] = cand[rng.integers(len(cand))]
-    err = {w: _pve(Fitter(body, FitConfig(back_facing_weight=w, lambda_pose_weak=0.0))
-                   .fit(V[front], ids), V) for w in (1.0, 0.1)}  # this mechanism alone
+    err = {w: _pve(Fitter(body, FitConfig(back_facing_weight=w, **WEAK_PRIORS))
+                   .fit(V[front], ids), V) for w in (1.0, 0.1)}
     assert err[0.1] < 0.8 * err[1.0], err
 
 

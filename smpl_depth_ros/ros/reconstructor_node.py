@@ -77,7 +77,7 @@ _CORE_DOC = {
                                   'nearest (m; 0 = the fit decides everywhere)',
     'fit.lambda_data': 'fitting: data term weight',
     'fit.lambda_pose': 'fitting: joint-limit prior weight',
-    'fit.lambda_pose_l2': 'fitting: pull of every joint towards rest',
+    'fit.lambda_pose_l2': 'fitting: pull of every joint towards rest (per rad^2)',
     'fit.lambda_pose_weak': 'fitting: pull of the collars and wrists towards rest (per '
                             'rad^2; joints a depth image hardly observes)',
     'fit.lambda_shape': 'fitting: shape prior weight',
