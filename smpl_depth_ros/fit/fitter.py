@@ -639,7 +639,7 @@ class Fitter:
         S = len(rig.shape_mean)
         n_rot = 3 * (P + 1)
         lam_p, lam_s = cfg.lambda_pose, cfg.lambda_shape
-        lam_l2 = self._pose_l2_weights()[:, None, None]  # (P, 1, 1)
+        lam_l2 = self._pose_l2_weights()  # (P,)
         N = len(pts)
         wsum = float(N) if wts is None else float(wts.sum())
         prob = self._problem(state[2], ids, joints)
@@ -712,8 +712,8 @@ class Fitter:
             # Pose priors (Jacobian of the canonical axis-angle ~ C for the increment).
             out = (viol != 0).astype(np.float64)
             Jp = out[..., None] * rig.C[None]  # (P, 3, 3), sign irrelevant in H
-            Hp = lam_p * Jp.transpose(0, 2, 1) @ Jp + lam_l2 * np.eye(3)
-            gp = lam_p * (-Jp.transpose(0, 2, 1) @ viol[..., None])[..., 0] + lam_l2[..., 0] * aa
+            Hp = lam_p * Jp.transpose(0, 2, 1) @ Jp + lam_l2[:, None, None] * np.eye(3)
+            gp = lam_p * (-Jp.transpose(0, 2, 1) @ viol[..., None])[..., 0] + lam_l2[:, None] * aa
             for j in range(P):
                 b = 3 + 3 * j
                 H[b:b + 3, b:b + 3] += Hp[j]
