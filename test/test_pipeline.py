@@ -276,3 +276,30 @@ def test_icp_refit_takes_the_body_pixels_the_network_left_out(rec, monkeypatch):
         assert (np.abs(pts @ pl[:3] - pl[3]) > 0.02).all()
     monkeypatch.setattr(rec, 'config', rec.config.with_overrides(icp_margin_m=0.0))
     assert len(rec._near_surface_pixels(d, K, V, r, c, crop)[0]) == 0
+
+
+def test_icp_step_matches_pixels_to_vertices_facing_the_camera(rec, monkeypatch):
+    """_refine_correspondences on the true mesh, from the true vertices: without
+    fit.icp_front_cos (1 = any vertex) some pixels of the front surface snap to a nearer
+    vertex on the far side of a limb or silhouette; with it (the default) none do, and the
+    matches lie closer to the truth on the template."""
+    from smpl_depth_ros.fit.fitter import vertex_normals
+    from smpl_depth_ros.net.preprocess import pixel_points
+    f = _frame(rec, 9)
+    d, K, V, vid = f['depth'], f['K'], f['vertices'], f['vertex_ids']
+    rr, cc = np.nonzero((vid >= 0) & (d > 0))
+    true = vid[rr, cc]
+    pts = pixel_points(rr, cc, d[rr, cc], K)
+    cos_max = rec.config.fit.icp_front_cos
+    assert cos_max < 1.0
+    facing = (vertex_normals(V.astype(np.float64), rec.faces)
+              * V / np.linalg.norm(V, axis=1, keepdims=True)).sum(1) < cos_max
+    canon = rec.body.canonical_vertices()
+    err = {}
+    for c in (cos_max, 1.0):
+        monkeypatch.setattr(rec, 'config', rec.config.with_overrides(icp_front_cos=c))
+        out = rec._refine_correspondences(pts, true, V)
+        err[c] = np.linalg.norm(canon[out] - canon[true], axis=1).mean()
+        away = (~facing[out]).mean()
+        assert (away == 0.0) if c < 1.0 else (away > 0.02), (c, away)
+    assert err[cos_max] < err[1.0]

@@ -297,7 +297,7 @@ class _Rig:
         return WQ.sum(1), WQ
 
 
-def _vertex_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def vertex_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Area-weighted unit vertex normals (V, 3)."""
     fn = np.cross(verts[faces[:, 1]] - verts[faces[:, 0]], verts[faces[:, 2]] - verts[faces[:, 0]])
     n = np.zeros_like(verts)
@@ -334,7 +334,7 @@ class Fitter:
         self._rng = np.random.default_rng(0)
         # Rest vertices at the mean shape: the template for the target consistency check.
         self._template = self._rest(self.rig.shape_mean)[1]
-        self._rest_normals = _vertex_normals(self._template, body.faces_numpy())
+        self._rest_normals = vertex_normals(self._template, body.faces_numpy())
         self._weak = objective.weak_joint_mask(body).astype(np.float64)
 
     def _pose_l2_weights(self) -> np.ndarray:

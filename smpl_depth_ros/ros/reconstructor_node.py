@@ -101,6 +101,8 @@ _CORE_DOC = {
                       'correspondence fit (0 = none)',
     'fit.icp_margin_m': 'fitting: those refits also take the pixels the network left out '
                         'that lie this close to the fitted mesh (m; 0 = off)',
+    'fit.icp_front_cos': 'fitting: the refinements match each pixel to a vertex facing the '
+                         'camera: cosine of its normal and the view ray below this (1 = any)',
     'fit.icp_tangent_weight': 'fitting: weight of the residual along the surface in the '
                               'refits to those nearest-vertex correspondences (0 = point '
                               'to plane, 1 = point to point)',
@@ -144,6 +146,7 @@ _FLOAT_RANGES = {
     'model_label_margin_m': (0.0, 1.0), 'model_label_keep_network_m': (0.0, 1.0),
     'fit.lambda_temporal': (0.0, 1e6), 'fit.icp_tangent_weight': (0.0, 1.0),
     'fit.icp_margin_m': (0.0, 1.0), 'fit.lambda_pose_weak': (0.0, 1e6),
+    'fit.icp_front_cos': (-1.0, 1.0),
 }
 _INT_RANGES = {
     'qos_depth': (1, 1000), 'cpu_threads': (0, 1024), 'max_persons': (1, 100),
