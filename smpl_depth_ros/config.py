@@ -46,7 +46,8 @@ class FitConfig:
                                       # the Eq. 2 fit (0 = the paper's single fit)
     icp_margin_m: float = 0.03        # their refits also take the pixels the network left
                                       # out that lie this close to the fitted mesh (0 = off)
-    icp_front_cos: float = 0.2        # their nearest vertex is one facing the camera: the
+    icp_front_cos: float = 0.2        # their nearest vertex (and that of the pixels the
+                                      # network left out) is one facing the camera: the
                                       # cosine of its normal and the view ray below this
                                       # (a pixel sees no back-facing surface; 1 = any)
     icp_tangent_weight: float = 0.05  # tangent_weight of the refits to those nearest-vertex

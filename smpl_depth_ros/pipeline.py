@@ -256,8 +256,9 @@ class Reconstructor:
             # ICP inside the predicted parts on this frame's fitted mesh, then a refit, to
             # which the pixels the network left out join where they lie on the mesh.
             for _ in range(cfg.fit.tracking_icp_rounds if tracked else cfg.fit.icp_rounds):
-                vids = self._refine_correspondences(pts, vids, fit.vertices)
-                xp, xv = self._near_surface_pixels(d, K, fit.vertices, r, c, crop)
+                front = self._facing_camera(fit.vertices)
+                vids = self._refine_correspondences(pts, vids, fit.vertices, front)
+                xp, xv = self._near_surface_pixels(d, K, fit.vertices, r, c, crop, front)
                 fit = self.fitter.fit(np.concatenate([pts, xp]), np.concatenate([vids, xv]),
                                       init=fit.params, fix_shape=False,
                                       iterations=cfg.fit.tracking_iterations,
@@ -321,22 +322,30 @@ class Reconstructor:
         return ([crops[i] for i in order], [x[i] for i in order], [lab[i] for i in order],
                 [coords[i] for i in order], plain)
 
-    def _refine_correspondences(self, pts, vids, vertices):
+    def _facing_camera(self, vertices) -> np.ndarray | None:
+        """(V,) bool: the vertices of a fitted mesh that face the camera (the cosine of
+        their normal and the view ray below fit.icp_front_cos), or None when that is 1
+        (any vertex). A pixel sees the front of the surface: the ICP step and the pixels
+        the network left out are matched to these only."""
+        cos_max = self.config.fit.icp_front_cos
+        if cos_max >= 1.0:
+            return None
+        v = np.asarray(vertices, np.float64)
+        ray = v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-9)
+        return (vertex_normals(v, self.faces) * ray).sum(1) < cos_max
+
+    def _refine_correspondences(self, pts, vids, vertices, front=None):
         """ICP step inside the predicted part: each point takes the nearest vertex of the
         fitted mesh among the vertices of its Eq. 2 vertex's part (the network decides
-        the part, the geometry the exact vertex) that face the camera (fit.icp_front_cos;
-        a part with fewer than 3 of them offers all its vertices). A pixel sees the front
-        of the surface; the nearest vertex of a thin fitted limb or of a silhouette can
-        be one on its far side (val_s2 32.8 -> 32.5 mm, val seq_s5 single frames 21.7 ->
-        21.4)."""
+        the part, the geometry the exact vertex) that face the camera (`front`, see
+        `_facing_camera`; default: computed here; a part with fewer than 3 of them
+        offers all its vertices). A pixel sees the front of the surface; the nearest
+        vertex of a thin fitted limb or of a silhouette can be one on its far side
+        (val_s2 32.8 -> 32.5 mm, val seq_s5 single frames 21.7 -> 21.4)."""
         pp = self._part_of_vertex[vids]
         out = np.array(vids, np.int64)
-        front = None
-        if self.config.fit.icp_front_cos < 1.0:
-            v = np.asarray(vertices, np.float64)
-            ray = v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-9)
-            front = (vertex_normals(v, self.faces) * ray).sum(1) < \
-                self.config.fit.icp_front_cos
+        if front is None:
+            front = self._facing_camera(vertices)
         for p in np.unique(pp):
             vi = self._part_vertices[p]
             if front is not None and front[vi].sum() >= 3:
@@ -347,13 +356,16 @@ class Reconstructor:
             out[m] = vi[cKDTree(vertices[vi]).query(pts[m])[1]]
         return out
 
-    def _near_surface_pixels(self, d, K, vertices, r, c, crop):
+    def _near_surface_pixels(self, d, K, vertices, r, c, crop, front=None):
         """Pixels the network did not give the person that lie within
         fit.icp_margin_m of its fitted mesh (a hand, the edge of an arm the network
-        called background), with their nearest fitted vertex: (N, 3) float32 points,
-        (N,) vertex ids. Looked for around the mesh's projection; `r, c` are the person's
-        pixels already in the fit; other candidates' blobs and the scene planes
-        (PLANE_M, the floor under a foot) are left out."""
+        called background), with their nearest fitted vertex facing the camera (`front`,
+        see `_facing_camera`; default: computed here): (N, 3) float32 points, (N,) vertex
+        ids. Looked for around the mesh's projection; `r, c` are the person's pixels
+        already in the fit; other candidates' blobs and the scene planes (PLANE_M, the
+        floor under a foot) are left out. Matched to any vertex, a pixel can take one on
+        the far side of a thin limb or a silhouette, as in the ICP step (val_s2 32.5 ->
+        31.9 mm, val seq_s5 single frames 21.4 -> 21.0)."""
         margin = float(self.config.fit.icp_margin_m)
         none = np.zeros((0, 3), np.float32), np.zeros(0, np.int64)
         ids = self._valid_vertex_ids
@@ -377,6 +389,11 @@ class Reconstructor:
         P = pixel_points(rr + v0, cc + u0, win[rr, cc], K)
         for pl in crop.planes:
             P = P[np.abs(P @ pl[:3] - pl[3]) > PLANE_M]
+        if front is None:
+            front = self._facing_camera(vertices)
+        if front is not None and front[ids].sum() >= 3:
+            ids = ids[front[ids]]
+            V = vertices[ids]
         if not len(P):
             return none
         dist, idx = cKDTree(V).query(P, distance_upper_bound=margin)

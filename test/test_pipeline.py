@@ -245,8 +245,9 @@ def test_icp_refit_takes_the_body_pixels_the_network_left_out(rec, monkeypatch):
     """_near_surface_pixels: with the true mesh as the fit and half the person's pixels
     (and a whole arm) left out as if the network had missed them, it returns body pixels
     the network did not have, nearly all of the missed ones within the margin of a vertex,
-    each with its nearest vertex, none already in the fit, none on the floor; nothing
-    with the margin at 0."""
+    each with its nearest vertex facing the camera (any vertex with fit.icp_front_cos 1:
+    then some face away), none already in the fit, none on the floor; nothing with the
+    margin at 0."""
     from scipy.spatial import cKDTree
 
     from smpl_depth_ros.net.preprocess import find_persons, pixel_points
@@ -271,9 +272,18 @@ def test_icp_refit_takes_the_body_pixels_the_network_left_out(rec, monkeypatch):
                                                 K))[0] <= rec.config.fit.icp_margin_m
     missed = set(zip(rr[~keep][near].tolist(), cc[~keep][near].tolist()))
     assert len(missed) > 500 and len(got & missed) > 0.9 * len(missed)
-    assert np.array_equal(vids, valid[cKDTree(V[valid]).query(pts)[1]])
+    # Each takes its nearest vertex among those facing the camera (fit.icp_front_cos):
+    # with any vertex allowed, some take one on the far side of a limb or silhouette.
+    front = rec._facing_camera(V)
+    assert front is not None and not front[valid].all()
+    fv = valid[front[valid]]
+    assert np.array_equal(vids, fv[cKDTree(V[fv]).query(pts)[1]])
     for pl in crop.planes:
         assert (np.abs(pts @ pl[:3] - pl[3]) > 0.02).all()
+    monkeypatch.setattr(rec, 'config', rec.config.with_overrides(icp_front_cos=1.0))
+    pts1, vids1 = rec._near_surface_pixels(d, K, V, r, c, crop)
+    assert np.array_equal(vids1, valid[cKDTree(V[valid]).query(pts1)[1]])
+    assert (~front[vids1]).mean() > 0.02
     monkeypatch.setattr(rec, 'config', rec.config.with_overrides(icp_margin_m=0.0))
     assert len(rec._near_surface_pixels(d, K, V, r, c, crop)[0]) == 0
 

@@ -101,8 +101,9 @@ _CORE_DOC = {
                       'correspondence fit (0 = none)',
     'fit.icp_margin_m': 'fitting: those refits also take the pixels the network left out '
                         'that lie this close to the fitted mesh (m; 0 = off)',
-    'fit.icp_front_cos': 'fitting: the refinements match each pixel to a vertex facing the '
-                         'camera: cosine of its normal and the view ray below this (1 = any)',
+    'fit.icp_front_cos': 'fitting: the refinements match each pixel (and each pixel the '
+                         'network left out) to a vertex facing the camera: cosine of its '
+                         'normal and the view ray below this (1 = any)',
     'fit.icp_tangent_weight': 'fitting: weight of the residual along the surface in the '
                               'refits to those nearest-vertex correspondences (0 = point '
                               'to plane, 1 = point to point)',
