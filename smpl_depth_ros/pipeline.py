@@ -389,13 +389,13 @@ class Reconstructor:
         P = pixel_points(rr + v0, cc + u0, win[rr, cc], K)
         for pl in crop.planes:
             P = P[np.abs(P @ pl[:3] - pl[3]) > PLANE_M]
+        if not len(P):
+            return none
         if front is None:
             front = self._facing_camera(vertices)
         if front is not None and front[ids].sum() >= 3:
             ids = ids[front[ids]]
             V = vertices[ids]
-        if not len(P):
-            return none
         dist, idx = cKDTree(V).query(P, distance_upper_bound=margin)
         ok = np.isfinite(dist)
         return P[ok].astype(np.float32), ids[idx[ok]]
