@@ -306,14 +306,15 @@ def test_train_correspondence_runs_checkpoints_and_resumes(body, tmp_path):
     """The training command end to end on a tiny budget: weights, JSON log, validation
     PNG and checkpoint are written; --resume continues from the checkpoint's step; the
     weights load for inference; --class-balance weighs small parts up, not background;
-    --ema validates and saves the weight average, kept across --resume."""
+    --ema validates and saves the weight average, kept across --resume; --truncate sets
+    the training crops' truncation (recorded in the weights' meta)."""
     import json
 
     from smpl_depth_ros.net import train
     out = tmp_path / 'w.pt'
     args = ['--out', str(out), '--steps', '3', '--batch', '2', '--workers', '0',
             '--val-size', '4', '--val-every', '2', '--ckpt-every', '2', '--seed', '3',
-            '--class-balance', '0.4', '--ema', '0.5']
+            '--class-balance', '0.4', '--ema', '0.5', '--truncate', '1.0']
     train.main(args)
     log = json.loads((tmp_path / 'w.log.json').read_text())
     assert [e['step'] for e in log] == [2, 3] and 0 <= log[-1]['miou'] <= 1
@@ -330,6 +331,7 @@ def test_train_correspondence_runs_checkpoints_and_resumes(body, tmp_path):
                for k in ckpt['net'] if ckpt['net'][k].is_floating_point())
     ck = torch.load(out, map_location='cpu', weights_only=False)
     assert ck['meta']['steps'] == 5 and '--class-balance 0.4' in ck['meta']['command']
+    assert ck['meta']['truncate'] == 1.0
     net = CorrespondenceNet(body, str(out))
     x = np.zeros((1, 2, INPUT_SIZE, INPUT_SIZE), np.float32)
     lab, coords = net.predict(x)

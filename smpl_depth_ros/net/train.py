@@ -20,6 +20,7 @@ import json
 import os
 import sys
 import time
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -148,6 +149,10 @@ def main(argv=None):
     ap.add_argument('--head-turn', type=float, default=0.0, metavar='DEG',
                     help='also turn the heads of the training and validation bodies '
                          '(PoseSampler head_turn_deg; default 0: the pose templates only)')
+    ap.add_argument('--truncate', type=float, default=None, metavar='P',
+                    help='probability that a training body leaving the sensor image is '
+                         'cropped as the sensor sees it (SampleConfig.truncate, default '
+                         '0.5; the validation set keeps the default)')
     ap.add_argument('--workers', type=int, default=max(1, (os.cpu_count() or 2) - 1))
     ap.add_argument('--device', default='auto', choices=['auto', 'cpu', 'cuda'])
     ap.add_argument('--seed', type=int, default=7)
@@ -204,14 +209,15 @@ def main(argv=None):
           file=sys.stderr)
     cw = class_weights(val[1], args.class_balance)
     cw = None if cw is None else cw.to(device)
-    ds = SyntheticDataset(body_factory, seed=args.seed * 1000 + step, cfg=scfg)
+    tcfg = scfg if args.truncate is None else replace(scfg, truncate=args.truncate)
+    ds = SyntheticDataset(body_factory, seed=args.seed * 1000 + step, cfg=tcfg)
     dl = torch.utils.data.DataLoader(ds, batch_size=args.batch, num_workers=args.workers,
                                      pin_memory=device.type == 'cuda',
                                      persistent_workers=args.workers > 0,
                                      prefetch_factor=4 if args.workers > 0 else None)
     meta = dict(kind=args.kind, backend=args.backend, input_size=INPUT_SIZE,
                 body_vertices=int(body.num_vertices), seed=args.seed, val_seed=args.val_seed,
-                command='train_correspondence ' + ' '.join(argv if argv is not None
+                truncate=tcfg.truncate, command='train_correspondence ' + ' '.join(argv if argv is not None
                                                             else sys.argv[1:]))
     try:
         from tqdm import tqdm
