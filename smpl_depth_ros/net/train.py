@@ -217,7 +217,8 @@ def main(argv=None):
                                      prefetch_factor=4 if args.workers > 0 else None)
     meta = dict(kind=args.kind, backend=args.backend, input_size=INPUT_SIZE,
                 body_vertices=int(body.num_vertices), seed=args.seed, val_seed=args.val_seed,
-                truncate=tcfg.truncate, command='train_correspondence ' + ' '.join(argv if argv is not None
+                truncate=tcfg.truncate,
+                command='train_correspondence ' + ' '.join(argv if argv is not None
                                                             else sys.argv[1:]))
     try:
         from tqdm import tqdm
