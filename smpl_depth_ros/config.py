@@ -41,6 +41,9 @@ class FitConfig:
     free_space_iterations: int = 4    # refinement iterations with the free-space term
     min_joint_support: float = 3.0    # joints moving fewer targets (skinning weight) are
                                       # held in place: an unseen limb keeps its pose
+    complete_hidden: bool = True      # cold fits: those joints take their conditional
+                                      # mean given the fitted ones under the pose Gaussian
+                                      # learned from the synthetic poses (fit.pose_prior)
     lost_residual_m: float = 0.06     # median residual above which the track is lost
     icp_rounds: int = 2               # part-constrained nearest-vertex refinements after
                                       # the Eq. 2 fit (0 = the paper's single fit)

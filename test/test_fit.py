@@ -409,3 +409,50 @@ def test_aggregate_drops_isolated_wrong_singletons():
     # A far person (about one pixel per vertex): singletons are all there is; all kept.
     _, u, _ = aggregate_by_vertex(template[:100] + 0.001, np.arange(100))
     assert len(u) == 100
+
+
+def test_pose_gaussian_completes_hidden_joints_from_the_seen_ones(body):
+    """The learned pose Gaussian's conditional mean: seen joints are kept, a hidden elbow
+    follows the other one (the activities bend both elbows together), within the limits."""
+    from smpl_depth_ros.fit.pose_prior import PoseGaussian
+    g = PoseGaussian.for_body(body)
+    names = list(body.joint_names[1:])
+    le, re = names.index('left_elbow'), names.index('right_elbow')
+    hidden = np.zeros(len(names), bool)
+    hidden[[re, names.index('right_wrist')]] = True
+    rest = np.zeros((len(names), 3))
+    assert np.array_equal(g.complete(rest, np.zeros(len(names), bool)), rest)
+    axis = __import__('smpl_depth_ros.synth.poses', fromlist=['elbow_axes']).elbow_axes(body)
+    flex = {}
+    for deg in (0.0, 110.0):
+        pose = rest.copy()
+        pose[le] = axis['left_elbow'] * np.radians(deg)
+        out = g.complete(pose, hidden)
+        assert np.array_equal(out[~hidden], pose[~hidden])
+        assert np.all(out >= g.limits[..., 0] - 1e-9) and np.all(out <= g.limits[..., 1] + 1e-9)
+        flex[deg] = np.degrees(out[re] @ axis['right_elbow'])
+    assert flex[110.0] > flex[0.0] + 20, flex
+
+
+def test_hidden_forearm_is_completed_not_left_straight(body):
+    """Arms crossed, the right forearm and hand without a single correspondence (hidden
+    behind the other arm): held at rest, the forearm hangs straight; completed from the
+    learned pose Gaussian it is bent like the seen one, much nearer the truth."""
+    ps = PoseSampler(body)
+    pose = ps.to_model(ps.template('arms_crossed'))[None]
+    shape = body.shape_mean.numpy().astype(np.float32)[None]
+    go, tr = placement(body, shape[0], 0.3, 0.0, 0.0, np.array([0.0, 0.1, 3.0]))
+    with torch.no_grad():
+        V = body(torch.tensor(pose), torch.tensor(shape), torch.tensor(go)[None],
+                 torch.tensor(tr)[None]).vertices[0].numpy()
+    n = np.asarray(__import__('trimesh').Trimesh(V, body.faces_numpy(), process=False)
+                   .vertex_normals)
+    parts = body.part_labels.numpy()
+    fore = np.isin(parts, (6, 8))  # lower_arm_r, hand_r
+    seen = np.flatnonzero(((n * V).sum(1) < 0) & ~fore)
+    err = {}
+    for on in (False, True):
+        r = Fitter(body, FitConfig(complete_hidden=on)).fit(V[seen], seen)
+        err[on] = np.linalg.norm(r.vertices - V, axis=1)[fore].mean()
+        assert np.linalg.norm(r.vertices - V, axis=1)[~fore].mean() < 0.015
+    assert err[False] > 0.15 and err[True] < 0.5 * err[False], err

@@ -34,6 +34,7 @@ from smpl_depth_ros.body.base import BodyModel
 from smpl_depth_ros.config import FitConfig
 from smpl_depth_ros.fit import objective
 from smpl_depth_ros.fit.freespace import FreeSpace
+from smpl_depth_ros.fit.pose_prior import PoseGaussian
 from smpl_depth_ros.types import BodyParams
 
 TORSO_PARTS = (1, 2)  # head + torso: the most rigid region, used for the rigid init
@@ -530,6 +531,8 @@ class Fitter:
                     if en2 < en:
                         state, sq = alt, sq2
                     iters += it2
+            if not warm and cfg.complete_hidden and not targets_are_joints:
+                state = self._complete_hidden(state, ids, wts)
             if (free_space is not None and cfg.free_space_weight > 0 and not targets_are_joints
                     and self._free_sq(state, free_space) >= FREE_SQ_MIN):
                 # Then the free space: parts the sensor would have seen are moved to where
@@ -807,6 +810,20 @@ class Fitter:
         weight its rotation moves; joints below cfg.min_joint_support are held."""
         moved = W @ self.rig.desc[1:].T  # (N, P): share of each target moved by joint j
         return (moved if wts is None else moved * (wts / wts.mean())[:, None]).sum(0)
+
+    def _complete_hidden(self, state, ids, wts):
+        """The state with its unsupported joints (cfg.min_joint_support) set to their
+        conditional mean given the others under the learned pose Gaussian."""
+        rig = self.rig
+        prob = self._problem(state[2], ids, False)
+        hidden = self._joint_support(prob[5], wts) < self.cfg.min_joint_support
+        if not hidden.any() or hidden.all():
+            return state
+        rot = state[0].copy()
+        canon = _log(rot[1:]) @ rig.C.T
+        new = PoseGaussian.for_body(self.body).complete(canon, hidden)
+        rot[1:][hidden] = _rodrigues(new[hidden] @ rig.C)
+        return rot, state[1], state[2]
 
     def _flipped(self, state, pts):
         """The state turned 180 deg about the body's up axis, through the points' centroid."""

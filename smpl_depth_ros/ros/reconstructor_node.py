@@ -96,6 +96,9 @@ _CORE_DOC = {
                            'correspondences), when typical cells hold twice that',
     'fit.min_joint_support': 'fitting: joints whose rotation moves fewer targets (in '
                              'skinning weight) are held in place (unseen limbs; 0 = off)',
+    'fit.complete_hidden': 'fitting: cold fits give those joints their most likely pose '
+                           'given the fitted ones (a pose Gaussian learned from the '
+                           'synthetic poses), not rest',
     'fit.lost_residual_m': 'fitting: median residual above which the track is lost (m)',
     'fit.icp_rounds': 'fitting: part-constrained nearest-vertex refinements after the '
                       'correspondence fit (0 = none)',
