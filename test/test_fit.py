@@ -158,8 +158,9 @@ def test_robust_to_wrong_correspondences(body):
 
 def test_unseen_limb_is_held_not_swung_by_stray_points(body):
     """A person seen without their left arm (out of view), plus 3 wrong correspondences
-    on that hand: with min_joint_support the unseen arm keeps its start pose instead of
-    being pulled towards the strays; the seen body is fitted as well either way."""
+    on that hand: with min_joint_support the unseen arm is held (at the pose the learned
+    pose Gaussian completes it with) instead of being pulled towards the strays; the seen
+    body is fitted as well either way."""
     rng, V, _, front = _scene(body, 9)
     parts = body.part_labels.numpy()
     arm = np.isin(parts, (3, 5, 7))  # upper_arm_l, lower_arm_l, hand_l

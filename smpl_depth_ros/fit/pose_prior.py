@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-SAMPLES = 20000  # poses drawn to estimate the Gaussian (seeded: deterministic)
+SAMPLES = 100000  # poses drawn to estimate the Gaussian (seeded: deterministic)
 RIDGE = 1e-4     # rad^2 added to the covariance's diagonal (clipped joints have little)
 
 _CACHE: dict = {}
@@ -31,7 +31,15 @@ class PoseGaussian:
         from smpl_depth_ros.synth.poses import PoseSampler
         sampler = PoseSampler(body)
         rng = np.random.default_rng(seed)
-        X = np.stack([sampler.sample_canonical(rng) for _ in range(samples)])
+        # PoseSampler.sample_canonical's distribution, drawn in one go: a template (and
+        # its mirror image) scaled by a random amplitude, per-joint noise, the limits.
+        T = np.stack([[sampler.template(t, 1.0, mirror=m) for m in (False, True)]
+                      for t in sampler.templates])  # (templates, 2, P, 3)
+        which = rng.choice(len(T), samples, p=sampler.weights)
+        mirror = (rng.random(samples) < 0.5).astype(np.int64)
+        amp = rng.uniform(0.3, 1.15, samples)[:, None, None]
+        X = sampler.clip(T[which, mirror] * amp + rng.normal(0, sampler.noise,
+                                                            (samples,) + T.shape[2:]))
         self.limits = sampler.limits
         self.P = X.shape[1]
         X = X.reshape(samples, -1)
@@ -40,7 +48,7 @@ class PoseGaussian:
 
     @classmethod
     def for_body(cls, body) -> 'PoseGaussian':
-        """One per body model kind and joint set (drawing 20,000 poses takes ~1 s)."""
+        """One per body model kind and joint set."""
         key = (body.name, tuple(body.joint_names))
         if key not in _CACHE:
             _CACHE[key] = cls(body)
