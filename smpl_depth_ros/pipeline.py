@@ -164,8 +164,9 @@ class Reconstructor:
             self.reset()
             raise InputError('no_person', f'no person found between {cfg.depth_min:.2f} and '
                              f'{cfg.depth_max:.2f} m')
+        rejected = []  # median residuals of the fits rejected as no person
         persons = self._persons(d, K, list(crops), stamp_ns, timings, labels_full,
-                                network_full)
+                                network_full, rejected)
         if not persons:
             # Second look: none of the candidates was a person, but a person standing
             # against a wall may be hidden in a blob too big for one: peel its planes.
@@ -175,23 +176,30 @@ class Reconstructor:
             timings['preprocess'] += (time.perf_counter() - tp) * 1e3
             if [int(c.mask.sum()) for c in again] != [int(c.mask.sum()) for c in crops]:
                 persons = self._persons(d, K, again, stamp_ns, timings, labels_full,
-                                        network_full)
+                                        network_full, rejected)
         if not persons:
             self.reset()
+            if rejected:
+                raise InputError('no_person', 'person candidates found, but no body fit '
+                                 'explained them (best median residual '
+                                 f'{min(rejected) * 1e3:.0f} mm > reject_residual_m '
+                                 f'{cfg.reject_residual_m * 1e3:.0f} mm)')
             raise InputError('no_person', 'person candidates found, but the network '
                              'segmented no body in them')
         timings['total'] = (time.perf_counter() - t0) * 1e3
         return FrameResult(persons=persons, labels=labels_full, timings_ms=timings,
                            network_labels=network_full)
 
-    def _persons(self, d, K, crops, stamp_ns, timings, labels_full, network_full
-                 ) -> list[PersonResult]:
+    def _persons(self, d, K, crops, stamp_ns, timings, labels_full, network_full,
+                 rejected: list) -> list[PersonResult]:
         """Run the network on the candidates and fit them, until max_persons are found
         (see `process`); writes their labels into labels_full (as `segmentation` says)
-        and the network's into network_full."""
+        and the network's into network_full, and appends the median residual of every
+        fit rejected as no person to `rejected`."""
         cfg = self.config
         persons = []
         split_done: set[int] = set()  # halves of split candidates are not split again
+        plain_retried: set[int] = set()  # flip_tta: candidates retried on the plain pass
         x, lab, coords = [], [], []  # network inputs and outputs, per candidate so far
         plain = {}  # candidate -> its plain network pass, when the mirrored one is pending
         if len(crops) > cfg.max_persons:
@@ -246,8 +254,22 @@ class Reconstructor:
                 # The body model cannot explain this blob: not a person (or a failed fit),
                 # or two people side by side in one blob: then try its two halves last.
                 timings['fit'] += (time.perf_counter() - tf) * 1e3
+                rejected.append(float(fit.median_residual))
                 if not persons:
                     self.reset()
+                if cfg.flip_tta and id(crop) not in plain_retried:
+                    # The averaged plain and mirrored passes can mislead a fit the plain
+                    # pass alone gets right (a side view whose left and right the two
+                    # passes disagree on; val_s2 frame 63: 0.108 m median residual, plain
+                    # 0.045): retry the candidate on the plain pass, right away.
+                    plain_retried.add(id(crop))
+                    tn = time.perf_counter()
+                    (lb,), (cb,) = self.net.predict(x[i][None], flip_tta=False)
+                    timings['network'] += (time.perf_counter() - tn) * 1e3
+                    for seq, item in ((crops, crop), (x, x[i]), (lab, lb), (coords, cb)):
+                        seq.insert(i + 1, item)
+                    plain = {k + (k > i): v for k, v in plain.items()}
+                    continue
                 if id(crop) not in split_done:
                     halves = split_side_by_side(crop, K)
                     split_done.update(id(h) for h in halves)
