@@ -71,4 +71,3 @@ class PoseGaussian:
             x[h] = self.mean[h]
         out = x.reshape(self.P, 3)
         return np.clip(out, self.limits[..., 0], self.limits[..., 1])
-
