@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 SAMPLES = 100000  # poses drawn to estimate the Gaussian (seeded: deterministic)
+CHUNK = 10000     # drawn and summed this many at a time (peak memory ~10 MB, not ~100)
 RIDGE = 1e-4     # rad^2 added to the covariance's diagonal (clipped joints have little)
 
 _CACHE: dict = {}
@@ -38,13 +39,19 @@ class PoseGaussian:
         which = rng.choice(len(T), samples, p=sampler.weights)
         mirror = (rng.random(samples) < 0.5).astype(np.int64)
         amp = rng.uniform(0.3, 1.15, samples)[:, None, None]
-        X = sampler.clip(T[which, mirror] * amp + rng.normal(0, sampler.noise,
-                                                            (samples,) + T.shape[2:]))
         self.limits = sampler.limits
-        self.P = X.shape[1]
-        X = X.reshape(samples, -1)
-        self.mean = X.mean(0)
-        self.cov = np.cov(X, rowvar=False) + RIDGE * np.eye(X.shape[1])
+        self.P = T.shape[2]
+        n = self.P * 3
+        s1, s2 = np.zeros(n), np.zeros((n, n))
+        for a in range(0, samples, CHUNK):
+            b = min(a + CHUNK, samples)
+            X = sampler.clip(T[which[a:b], mirror[a:b]] * amp[a:b] + rng.normal(
+                0, sampler.noise, (b - a,) + T.shape[2:])).reshape(b - a, n)
+            s1 += X.sum(0)
+            s2 += X.T @ X
+        self.mean = s1 / samples
+        self.cov = ((s2 - samples * np.outer(self.mean, self.mean)) / (samples - 1)
+                    + RIDGE * np.eye(n))
 
     @classmethod
     def for_body(cls, body) -> 'PoseGaussian':
