@@ -341,7 +341,7 @@ class Fitter:
         self._template = self._rest(self.rig.shape_mean)[1]
         self._rest_normals = vertex_normals(self._template, body.faces_numpy())
         self._weak = objective.weak_joint_mask(body).astype(np.float64)
-        # Built here, not on the first frame (0.2 s, once per process and body model).
+        # Built here, not on the first frame (0.3 s, once per process and body model).
         self._pose_gaussian = PoseGaussian.for_body(body) if cfg.complete_hidden else None
 
     def _pose_l2_weights(self) -> np.ndarray:
