@@ -8,7 +8,7 @@ from smpl_depth_ros.config import FitConfig
 from smpl_depth_ros.fit import Fitter, backproject
 from smpl_depth_ros.fit import objective
 from smpl_depth_ros.fit.freespace import FreeSpace
-from smpl_depth_ros.synth.poses import PoseSampler, placement, sample_shape
+from smpl_depth_ros.synth.poses import PoseSampler, elbow_axes, placement, sample_shape
 
 
 @pytest.fixture(scope='module')
@@ -423,7 +423,7 @@ def test_pose_gaussian_completes_hidden_joints_from_the_seen_ones(body):
     hidden[[re, names.index('right_wrist')]] = True
     rest = np.zeros((len(names), 3))
     assert np.array_equal(g.complete(rest, np.zeros(len(names), bool)), rest)
-    axis = __import__('smpl_depth_ros.synth.poses', fromlist=['elbow_axes']).elbow_axes(body)
+    axis = elbow_axes(body)
     flex = {}
     for deg in (0.0, 110.0):
         pose = rest.copy()
