@@ -23,6 +23,7 @@ EXECUTABLES = {
     'train_correspondence': 'smpl_depth_ros.net.train:main',
     'evaluate': 'smpl_depth_ros.tools.evaluate:main',
     'benchmark': 'smpl_depth_ros.tools.benchmark:main',
+    'sweep': 'smpl_depth_ros.tools.sweep:main',
 }
 
 WRAPPER_DIR = os.path.join('build', 'lib_wrappers')

@@ -97,6 +97,10 @@ class PipelineConfig:
                                       # nearest (0: the fit's part everywhere)
     reject_residual_m: float = 0.09   # candidates whose fit leaves a larger median residual
                                       # are not reported as persons
+    sensor: str = 'auto'              # the depth sensor's noise, which the noise-dependent
+                                      # thresholds scale with: 'auto' (measured from the
+                                      # frames), a synth.sensors preset name (e.g.
+                                      # 'realsense_d435'), or 'none' (fixed defaults)
     fit: FitConfig = field(default_factory=FitConfig)
 
     def with_overrides(self, **kw) -> 'PipelineConfig':

@@ -62,6 +62,7 @@ from typing import Any, Callable, Iterator
 import numpy as np
 
 from smpl_depth_ros.config import FitConfig, PipelineConfig
+from smpl_depth_ros.sensor_noise import check_sensor
 from smpl_depth_ros.types import InputError
 
 PROG = 'process_bag'
@@ -199,6 +200,8 @@ def config_from_params(params: dict[str, Any], base: PipelineConfig | None = Non
     if out.segmentation not in ('model', 'network'):
         raise ProcessBagError("segmentation must be 'model' or 'network', got "
                               f'{out.segmentation!r}')
+    if check_sensor(out.sensor):
+        raise ProcessBagError(check_sensor(out.sensor))
     if not out.depth_min < out.depth_max:
         raise ProcessBagError(f'depth_min ({out.depth_min}) must be smaller than depth_max '
                               f'({out.depth_max})')

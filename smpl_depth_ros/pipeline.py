@@ -21,6 +21,8 @@ from smpl_depth_ros.fit.fitter import vertex_normals
 from smpl_depth_ros.net.infer import CorrespondenceNet
 from smpl_depth_ros.net.preprocess import (NEAR_RANGE, crop_depth, find_persons,
                                            network_input, pixel_points, split_side_by_side)
+from smpl_depth_ros.sensor_noise import (AutoNoise, NoiseModel, check_sensor, noise_model,
+                                         scaled_reject_residual)
 from smpl_depth_ros.types import FrameResult, InputError, PersonResult
 
 MIN_BODY_PIXELS = 60  # network-foreground crop pixels needed to attempt a fit
@@ -28,6 +30,8 @@ PLANE_M = 0.02  # 'model' labels: pixels this near a scene plane (the floor unde
                 # are not taken into the person by the margin (val_s2 mIoU 0.847 -> 0.856)
 MODEL_LABEL_POINTS = 8000  # segmentation 'model': pixels labelled per person, at most ~
 SAME_SURFACE_M = 0.03  # ... the others take their cell's part when this close in depth
+AUTO_FIRST = 10  # sensor 'auto': the noise is measured on each of the first frames ...
+AUTO_EVERY = 10  # ... then on every AUTO_EVERY-th (a few ms each)
 _CORNER = 0.6  # barycentric weight of a triangle's corner samples (0.5 / 0.7: worse)
 _CORNER_BARY = np.array([[_CORNER, (1 - _CORNER) / 2, (1 - _CORNER) / 2],
                          [(1 - _CORNER) / 2, _CORNER, (1 - _CORNER) / 2],
@@ -94,6 +98,8 @@ class Reconstructor:
 
     def __init__(self, config: PipelineConfig = PipelineConfig(), body=None):
         self.config = config
+        if check_sensor(config.sensor):
+            raise ValueError(check_sensor(config.sensor))
         self.device = resolve_device(config.device)
         torch.set_grad_enabled(True)
         self.body = body if body is not None else load_body_model(
@@ -121,6 +127,32 @@ class Reconstructor:
         self._track = None  # (FitResult, stamp_ns) of the tracked person
         self._track_mask = None  # its pixels in the last frame
         self._shapes = None  # [sum, samples, tracked frames] of the track's shape
+        self._auto = AutoNoise() if config.sensor == 'auto' else None
+        self._preset: tuple | None = None  # (fx, NoiseModel) of a sensor preset
+        self._frames = 0
+
+    @property
+    def noise(self) -> NoiseModel:
+        """The sensor noise model in use (a preset's at the last frame's focal length, the
+        'auto' estimate so far, or the zero model for 'none')."""
+        if self._auto is not None:
+            return self._auto.model()
+        return self._preset[1] if self._preset else noise_model(self.config.sensor)
+
+    def _noise_for(self, d, K) -> NoiseModel | None:
+        """The noise model for this frame (see `noise`); None when it leaves every
+        threshold at its default (sensor 'none', or nothing measured yet)."""
+        self._frames += 1
+        if self._auto is not None:
+            if self._frames <= AUTO_FIRST or self._frames % AUTO_EVERY == 0:
+                self._auto.update(d)
+            m = self._auto.model()
+            return m if m.z else None
+        if self.config.sensor == 'none':
+            return None
+        if self._preset is None or self._preset[0] != K[0, 0]:
+            self._preset = (K[0, 0], noise_model(self.config.sensor, K))
+        return self._preset[1]
 
     def reset(self) -> None:
         """Forget the tracking state (next frame is fitted cold)."""
@@ -152,8 +184,9 @@ class Reconstructor:
         t0 = time.perf_counter()
         d = validate_input(depth, K, cfg.max_image_pixels)
         K = np.asarray(K, np.float64)
+        noise = self._noise_for(d, K)
         crops = find_persons(d, K, cfg.depth_min, cfg.depth_max, cfg.min_person_pixels,
-                             max_persons=max(cfg.max_persons, 1) + 2)
+                             max_persons=max(cfg.max_persons, 1) + 2, noise=noise)
         t1 = time.perf_counter()
         labels_full = np.zeros(d.shape, np.uint8)
         network_full = (np.zeros(d.shape, np.uint8) if cfg.segmentation == 'model'
@@ -166,24 +199,29 @@ class Reconstructor:
                              f'{cfg.depth_max:.2f} m')
         rejected = []  # median residuals of the fits rejected as no person
         persons = self._persons(d, K, list(crops), stamp_ns, timings, labels_full,
-                                network_full, rejected)
+                                network_full, rejected, noise)
         if not persons:
             # Second look: none of the candidates was a person, but a person standing
             # against a wall may be hidden in a blob too big for one: peel its planes.
             tp = time.perf_counter()
             again = find_persons(d, K, cfg.depth_min, cfg.depth_max, cfg.min_person_pixels,
-                                 max_persons=max(cfg.max_persons, 1) + 2, peel=True)
+                                 max_persons=max(cfg.max_persons, 1) + 2, peel=True,
+                                 noise=noise)
             timings['preprocess'] += (time.perf_counter() - tp) * 1e3
             if [int(c.mask.sum()) for c in again] != [int(c.mask.sum()) for c in crops]:
                 persons = self._persons(d, K, again, stamp_ns, timings, labels_full,
-                                        network_full, rejected)
+                                        network_full, rejected, noise)
         if not persons:
             self.reset()
             if rejected:
+                best, limit = min(rejected)
+                why = (f'reject_residual_m {limit * 1e3:.0f} mm'
+                       if limit == cfg.reject_residual_m else
+                       f'{limit * 1e3:.0f} mm: reject_residual_m '
+                       f'{cfg.reject_residual_m * 1e3:.0f} mm widened for the sensor noise')
                 raise InputError('no_person', 'person candidates found, but no body fit '
-                                 'explained them (best median residual '
-                                 f'{min(rejected) * 1e3:.0f} mm > reject_residual_m '
-                                 f'{cfg.reject_residual_m * 1e3:.0f} mm)')
+                                 f'explained them (best median residual {best * 1e3:.0f} '
+                                 f'mm > {why})')
             raise InputError('no_person', 'person candidates found, but the network '
                              'segmented no body in them')
         timings['total'] = (time.perf_counter() - t0) * 1e3
@@ -191,11 +229,13 @@ class Reconstructor:
                            network_labels=network_full)
 
     def _persons(self, d, K, crops, stamp_ns, timings, labels_full, network_full,
-                 rejected: list) -> list[PersonResult]:
+                 rejected: list, noise: NoiseModel | None = None) -> list[PersonResult]:
         """Run the network on the candidates and fit them, until max_persons are found
         (see `process`); writes their labels into labels_full (as `segmentation` says)
-        and the network's into network_full, and appends the median residual of every
-        fit rejected as no person to `rejected`."""
+        and the network's into network_full, and appends (median residual, limit) of
+        every fit rejected as no person to `rejected`. `noise`: the sensor noise model;
+        each candidate's noise-dependent thresholds are widened for the noise at its
+        median depth (sensor_noise)."""
         cfg = self.config
         persons = []
         split_done: set[int] = set()  # halves of split candidates are not split again
@@ -234,6 +274,9 @@ class Reconstructor:
             if fg.sum() < MIN_BODY_PIXELS or fg.sum() < 0.4 * max(int(x[i][1].sum()), 1) \
                     * self._blob_fraction(crop, x[i][1]):
                 continue
+            sigma = 0.0 if noise is None else float(noise(crop.median_depth))
+            fitter = self.fitter.for_noise(sigma)
+            reject = scaled_reject_residual(cfg.reject_residual_m, sigma)
             tc = time.perf_counter()
             vids = self.net.lookup(lab[i], coords[i], fg)
             rr, cc, _ = crop.sample_indices(d.shape)
@@ -247,14 +290,14 @@ class Reconstructor:
                 box = (crop.u0 - side / 4, crop.v0 - side / 4, crop.u0 + 1.25 * side,
                        crop.v0 + 1.25 * side)
                 zmed = float(np.median(d[r, c].astype(np.float64)))
-                free = FreeSpace(d, K, zmed, cfg.fit.free_space_margin, box=box,
+                free = FreeSpace(d, K, zmed, fitter.cfg.free_space_margin, box=box,
                                  planes=supporting_planes(crop.planes, pts))
-            fit, vids, tracked = self._fit(pts, vids, stamp_ns, not persons, free)
-            if fit.median_residual > cfg.reject_residual_m:
+            fit, vids, tracked = self._fit(pts, vids, stamp_ns, not persons, free, fitter)
+            if fit.median_residual > reject:
                 # The body model cannot explain this blob: not a person (or a failed fit),
                 # or two people side by side in one blob: then try its two halves last.
                 timings['fit'] += (time.perf_counter() - tf) * 1e3
-                rejected.append(float(fit.median_residual))
+                rejected.append((float(fit.median_residual), reject))
                 if not persons:
                     self.reset()
                 if cfg.flip_tta and id(crop) not in plain_retried:
@@ -280,8 +323,9 @@ class Reconstructor:
             for _ in range(cfg.fit.tracking_icp_rounds if tracked else cfg.fit.icp_rounds):
                 front = self._facing_camera(fit.vertices)
                 vids = self._refine_correspondences(pts, vids, fit.vertices, front)
-                xp, xv = self._near_surface_pixels(d, K, fit.vertices, r, c, crop, front)
-                fit = self.fitter.fit(np.concatenate([pts, xp]), np.concatenate([vids, xv]),
+                xp, xv = self._near_surface_pixels(d, K, fit.vertices, r, c, crop, front,
+                                                   fitter.cfg.icp_margin_m)
+                fit = fitter.fit(np.concatenate([pts, xp]), np.concatenate([vids, xv]),
                                       init=fit.params, fix_shape=False,
                                       iterations=cfg.fit.tracking_iterations,
                                       free_space=free,
@@ -378,7 +422,7 @@ class Reconstructor:
             out[m] = vi[cKDTree(vertices[vi]).query(pts[m])[1]]
         return out
 
-    def _near_surface_pixels(self, d, K, vertices, r, c, crop, front=None):
+    def _near_surface_pixels(self, d, K, vertices, r, c, crop, front=None, margin=None):
         """Pixels the network did not give the person that lie within
         fit.icp_margin_m of its fitted mesh (a hand, the edge of an arm the network
         called background), with their nearest fitted vertex facing the camera (`front`,
@@ -387,8 +431,9 @@ class Reconstructor:
         already in the fit; other candidates' blobs and the scene planes (PLANE_M, the
         floor under a foot) are left out. Matched to any vertex, a pixel can take one on
         the far side of a thin limb or a silhouette, as in the ICP step (val_s2 32.5 ->
-        31.9 mm, val seq_s5 single frames 21.4 -> 21.0)."""
-        margin = float(self.config.fit.icp_margin_m)
+        31.9 mm, val seq_s5 single frames 21.4 -> 21.0). `margin`: fit.icp_margin_m
+        unless given (widened for a noisy sensor)."""
+        margin = float(self.config.fit.icp_margin_m if margin is None else margin)
         none = np.zeros((0, 3), np.float32), np.zeros(0, np.int64)
         ids = self._valid_vertex_ids
         V = vertices[ids]
@@ -422,17 +467,19 @@ class Reconstructor:
         ok = np.isfinite(dist)
         return P[ok].astype(np.float32), ids[idx[ok]]
 
-    def _fit(self, pts, vids, stamp_ns, first: bool, free=None):
+    def _fit(self, pts, vids, stamp_ns, first: bool, free=None, fitter=None):
         """Fit one person: warm-started from the previous frame while the track holds
         (refining the correspondences on the previous, moved mesh was measured to lock
         onto wrong poses; `process` refines them on this frame's warm fit instead), else
         cold.
 
-        `free`: the frame's FreeSpace (or None), passed to the fitter.
+        `free`: the frame's FreeSpace (or None), passed to the fitter; `fitter`: the
+        fitter to use (default self.fitter; `Fitter.for_noise` widens its thresholds).
 
         Returns (FitResult, correspondences used, tracked).
         """
         cfg = self.config
+        fitter = fitter or self.fitter
         if first and cfg.tracking and self._track is not None:
             prev, prev_stamp = self._track
             gap_ok = (stamp_ns is None or prev_stamp is None or
@@ -442,18 +489,18 @@ class Reconstructor:
                 if self._shapes is not None and self._shapes[1]:  # pose at the mean shape
                     mean = self._shapes[0] / self._shapes[1]
                     init = replace(init, shape=mean.astype(np.asarray(init.shape).dtype))
-                fit = self.fitter.fit(pts, vids, init=init, free_space=free,
-                                      temporal_weight=cfg.fit.lambda_temporal)
-                if fit.median_residual <= cfg.fit.lost_residual_m:
+                fit = fitter.fit(pts, vids, init=init, free_space=free,
+                                 temporal_weight=cfg.fit.lambda_temporal)
+                if fit.median_residual <= fitter.cfg.lost_residual_m:
                     self._track = (fit, stamp_ns)
-                    self._sample_shape(pts, vids, fit)
+                    self._sample_shape(pts, vids, fit, fitter)
                     return fit, vids, True
-        fit = self.fitter.fit(pts, vids, free_space=free)
+        fit = fitter.fit(pts, vids, free_space=free)
         if first:
             self._track = (fit, stamp_ns) if cfg.tracking else None
         return fit, vids, False
 
-    def _sample_shape(self, pts, vids, fit) -> None:
+    def _sample_shape(self, pts, vids, fit, fitter=None) -> None:
         """Every `shape_sample_every`-th tracked frame, a short warm fit with the shape
         free adds a sample to the track's mean shape. One frame's shape is only as good as
         its correspondences; averaged over the track it is measured better (val seq_s5
@@ -465,7 +512,8 @@ class Reconstructor:
         self._shapes[2] += 1
         if self._shapes[2] % every:
             return
-        s = self.fitter.fit(pts, vids, init=fit.params, fix_shape=False, iterations=2)
+        s = (fitter or self.fitter).fit(pts, vids, init=fit.params, fix_shape=False,
+                                        iterations=2)
         self._shapes[0] = self._shapes[0] + np.asarray(s.params.shape, np.float64)
         self._shapes[1] += 1
 

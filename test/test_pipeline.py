@@ -338,7 +338,7 @@ def test_a_frame_whose_fits_are_all_rejected_says_so(rec):
     """A person the network segments but no fit is accepted for (here: a residual bound
     no fit meets) is reported as such, with the best residual, not as 'no body seen'."""
     f = _frame(rec, 3, background=False)
-    strict = Reconstructor(rec.config.with_overrides(reject_residual_m=0.001,
+    strict = Reconstructor(rec.config.with_overrides(reject_residual_m=0.001, sensor='none',
                                                      tracking=False), body=rec.body)
     with pytest.raises(InputError, match=r'no body fit explained them \(best median '
                                          r'residual \d+ mm > reject_residual_m 1 mm\)') as e:

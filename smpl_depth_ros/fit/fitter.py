@@ -26,6 +26,7 @@ Two solvers minimise the same objective (fit.objective):
 """
 from __future__ import annotations
 
+import copy
 import time
 from dataclasses import dataclass
 
@@ -43,6 +44,7 @@ from smpl_depth_ros.types import BodyParams
 
 TORSO_PARTS = (1, 2)  # head + torso: the most rigid region, used for the rigid init
 MAX_RAW_POINTS = 20000  # input points aggregated per fit (a random subset beyond that)
+SPREAD_M = 0.02  # aggregate_by_vertex's coherence scale (widened for noisy sensors)
 RELIN_TOL = 0.03  # shape change that triggers a re-linearisation of the rest geometry
 FREE_SQ_MIN = 0.02  # m^2: summed squared free-space distances that call for the refinement
                     # (exact fits to noisy val_s2 frames leave <= 0.005; 0.02 is e.g. 8
@@ -343,6 +345,24 @@ class Fitter:
         self._weak = objective.weak_joint_mask(body).astype(np.float64)
         # Built here, not on the first frame (0.3 s, once per process and body model).
         self._pose_gaussian = PoseGaussian.for_body(body) if cfg.complete_hidden else None
+        self.spread_m = SPREAD_M
+        self._noisy: dict[int, 'Fitter'] = {}
+
+    def for_noise(self, sigma: float) -> 'Fitter':
+        """This fitter with its noise-dependent thresholds widened for an expected sensor
+        noise sigma (metres, sensor_noise.scaled_fit_config / scaled_spread); itself when
+        sigma leaves them at their defaults. Shares the rig, caches and random stream."""
+        from smpl_depth_ros.sensor_noise import scaled_fit_config, scaled_spread
+        cfg = scaled_fit_config(self.cfg, sigma)
+        spread = scaled_spread(SPREAD_M, sigma)
+        if cfg == self.cfg and spread == self.spread_m:
+            return self
+        key = int(round(float(sigma) * 1e4))  # 0.1 mm steps
+        if key not in self._noisy:
+            f = copy.copy(self)
+            f.cfg, f.spread_m, f._noisy = cfg, spread, {}
+            self._noisy[key] = f
+        return self._noisy[key]
 
     def _pose_l2_weights(self) -> np.ndarray:
         """(P,) weight per pose joint of its pull towards rest (per rad^2):
@@ -492,6 +512,7 @@ class Fitter:
                 sel = self._rng.choice(len(ids_all), MAX_RAW_POINTS, replace=False)
             pts, ids, wts = aggregate_by_vertex(pts_all[sel], ids_all[sel],
                                                 None if wts_all is None else wts_all[sel],
+                                                spread_m=self.spread_m,
                                                 min_points=cfg.min_cell_points,
                                                 template=self._template)
             if len(ids) > cfg.max_points:

@@ -1,12 +1,15 @@
 """Training samples for the correspondence network, rendered on the fly (no ROS).
 
-Each sample: a random adult (shape, pose from synth.poses), placed 1-5 m from a random
-camera preset with any yaw and small pitch/roll, a random background (floor, walls,
-clutter; optional), rendered by ray casting directly into the network's S x S crop (the
-virtual camera of a jittered square crop around the projected body, the same crop
-geometry net.preprocess uses at run time), then the sensor noise model. Targets: part
-labels (15 classes) and the normalised canonical coordinates of each pixel's template
-vertex.
+Each sample: a random adult (shape, pose from synth.poses: the activity templates or the
+broad pose mixture), placed 1-5 m from a random camera preset with any yaw and small
+pitch/roll, a random background (floor, walls, clutter; optional), rendered by ray
+casting directly into the network's S x S crop (the virtual camera of a jittered square
+crop around the projected body, the same crop geometry net.preprocess uses at run time),
+then a sensor noise model: by default the Kinect v1 model in crop pixels, or (with
+`SampleConfig.sensors`) a random sensor preset of any class (structured light, stereo,
+time of flight: synth.sensors) at a random strength and resolution, its pixel-sized
+effects expressed in crop pixels. Targets: part labels (15 classes) and the normalised
+canonical coordinates of each pixel's template vertex.
 """
 from __future__ import annotations
 
@@ -22,6 +25,7 @@ from smpl_depth_ros.synth.camera import CAMERAS, Camera
 from smpl_depth_ros.synth.noise import NoiseParams, apply_noise
 from smpl_depth_ros.synth.poses import PoseSampler, placement, sample_shape
 from smpl_depth_ros.synth.render import render_body, sample_background
+from smpl_depth_ros.synth.sensors import SENSORS, hair_vertices
 
 
 @dataclass(frozen=True)
@@ -36,6 +40,13 @@ class SampleConfig:
                                      # the crop around its part inside the sensor image,
                                      # pixels outside that image empty (close range)
     head_turn_deg: float = 0.0       # PoseSampler's head turns (0: the templates' own)
+    poses: str = 'templates'         # PoseSampler mode: 'templates' | 'broad'
+    sensors: tuple[str, ...] = ()    # synth.sensors presets drawn per sample (uniformly
+                                     # per class, then per preset); () = Kinect v1 noise
+                                     # on every camera preset (the original protocol)
+    strength: tuple[float, float] = (0.5, 2.0)  # noise strength, log-uniform
+    resolution: tuple[float, float] = (0.5, 1.5)  # sensor image scale (640x480 preset:
+                                     # 320x240 to 960x720), uniform
 
 
 def crop_noise_params(scale: float) -> NoiseParams:
@@ -84,24 +95,50 @@ class SampleMaker:
     def __init__(self, body, cfg: SampleConfig = SampleConfig()):
         self.body = body
         self.cfg = cfg
-        self.sampler = PoseSampler(body, head_turn_deg=cfg.head_turn_deg)
+        self.sampler = PoseSampler(body, head_turn_deg=cfg.head_turn_deg, mode=cfg.poses)
         self.faces = body.faces_numpy()
         self.parts = body.part_labels.cpu().numpy()
         emb = template_embedding(body.canonical_vertices(), self.parts)
         self.coords = emb[:, :3]
         self.cameras = [c for c in CAMERAS.values()]
+        self.sensors = [SENSORS[n] for n in cfg.sensors]
+        self.hair = hair_vertices(body) if self.sensors else None
+
+    def _sensor(self, rng):
+        """A random sensor (a class uniformly, then one of its presets) at a random
+        resolution, and a noise strength."""
+        kinds = sorted({s.kind for s in self.sensors})
+        k = kinds[rng.integers(len(kinds))]
+        opts = [s for s in self.sensors if s.kind == k]
+        sensor = opts[rng.integers(len(opts))]
+        f = rng.uniform(*self.cfg.resolution)
+        cam = sensor.camera
+        cam = cam.scaled(max(16, round(cam.width * f)), max(16, round(cam.height * f)))
+        lo, hi = np.log(self.cfg.strength[0]), np.log(self.cfg.strength[1])
+        return sensor.with_camera(cam), float(np.exp(rng.uniform(lo, hi)))
 
     def __call__(self, rng: np.random.Generator):
         cfg, body = self.cfg, self.body
-        cam: Camera = self.cameras[rng.integers(len(self.cameras))]
-        pose = self.sampler.sample(rng, 1)
+        sensor = strength = None
+        if self.sensors:
+            sensor, strength = self._sensor(rng)
+            cam: Camera = sensor.camera
+            pose, root_tilt = self.sampler.sample_posed(rng)
+            pose = pose[None]
+        else:
+            cam = self.cameras[rng.integers(len(self.cameras))]
+            pose, root_tilt = self.sampler.sample(rng, 1), np.zeros(2)
         shape = sample_shape(body, rng, 1)
-        z = rng.uniform(*cfg.depth_range)
+        dlo, dhi = cfg.depth_range
+        if sensor is not None:
+            dlo = max(dlo, cam.min_range + 0.3)
+            dhi = max(dlo + 0.1, min(dhi, cam.max_range - 0.3))
+        z = rng.uniform(dlo, dhi)
         # Root inside the frustum (keep most of the body in view).
         x = rng.uniform(-0.35, 0.35) * z * cam.width / cam.fx
         y = rng.uniform(-0.2, 0.25) * z * cam.height / cam.fy
         yaw = rng.uniform(-np.pi, np.pi)
-        pitch, roll = np.deg2rad(rng.uniform(-10, 10, 2))
+        pitch, roll = np.deg2rad(rng.uniform(-10, 10, 2)) + root_tilt
         go, tr = placement(body, shape[0], yaw, pitch, roll, np.array([x, y, z]))
         with torch.no_grad():
             out = body(torch.as_tensor(pose, dtype=body.dtype),
@@ -120,7 +157,15 @@ class SampleMaker:
             bg = sample_background(rng, cam, out.joints[0, 0].cpu().numpy(), V)
         r = render_body(V, self.faces, self.parts, ccam, bg)
         depth, labels, vids = r.depth, r.labels, r.vertex_ids
-        if cfg.noise:
+        if cfg.noise and sensor is not None:
+            dark = (vids >= 0) & self.hair[np.maximum(vids, 0)] if sensor.kind == 'tof' \
+                else None
+            nr = sensor.apply(depth, r.normals_cos, rng, strength, fx=Kc[0, 0],
+                              pixel_size=crop.scale, dark=dark)
+            depth = nr.depth
+            labels = nr.take(labels, 0)
+            vids = nr.take(vids, -1)
+        elif cfg.noise:
             nr = apply_noise(depth, r.normals_cos, rng, crop_noise_params(crop.scale), fx=None)
             depth = nr.depth
             labels = nr.take(labels, 0)

@@ -38,7 +38,7 @@ class CorrespondenceNet:
                 f'no correspondence weights at {path}: for the {body.name!r} backend train '
                 f'them with `train_correspondence --backend {body.name} --out {path}` '
                 '(see README), or pass weights_path')
-        ck = torch.load(path, map_location='cpu', weights_only=False)
+        ck = torch.load(path, map_location='cpu', weights_only=True)
         meta = ck.get('meta', {})
         if meta.get('body_vertices') not in (None, body.num_vertices):
             raise ValueError(f'weights {path} were trained for a body with '

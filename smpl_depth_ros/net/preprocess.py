@@ -207,7 +207,7 @@ def _scene_sized(q: np.ndarray, n: np.ndarray, min_extent: float) -> bool:
 def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=2,
                    min_fraction=0.03, thresh=0.03, iters=1000, min_extent=1.0,
                    min_up=0.75, sample=2000, presample=200, finalists=10,
-                   local_k=16, planes: list | None = None) -> np.ndarray:
+                   local_k=16, planes: list | None = None, noise=None) -> np.ndarray:
     """Boolean mask of points that belong to none of the dominant planes.
 
     RANSAC over `iters` point triples per plane (half of them local: a point and two of
@@ -215,9 +215,13 @@ def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=2,
     looked past (up to 3 of them); hypotheses are scored preemptively: all on
     `presample` random points, the best `finalists` on `sample` random points. The planes
     removed are appended to `planes` (when given) as (4,) arrays (n, offset), n . x =
-    offset, unit n towards the camera (the side the scene is seen from).
+    offset, unit n towards the camera (the side the scene is seen from). `noise`: an
+    optional sigma(z) (sensor_noise.NoiseModel): a point's inlier band is then
+    max(thresh, 2 sigma(its depth)).
     """
     keep = np.ones(len(points), bool)
+    if noise is not None and len(points):
+        thresh = np.maximum(thresh, 2.0 * noise(points[:, 2]))
     n_all = len(points)
     if n_all < 100:
         return keep
@@ -233,7 +237,9 @@ def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=2,
         idx = np.flatnonzero(avail)
         if len(idx) < 100:
             break
-        P = points[idx[rng.choice(len(idx), min(len(idx), sample), replace=False)]]
+        pick_ = idx[rng.choice(len(idx), min(len(idx), sample), replace=False)]
+        P = points[pick_]
+        tP = thresh[pick_] if np.ndim(thresh) else thresh
         tri = rng.integers(0, len(P), (iters, 3))
         # Half the triples local (two of a point's nearest neighbours in the sample): a
         # floor that fills 10 % of the view gives an all-floor random triple once in a
@@ -259,9 +265,11 @@ def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=2,
         if not up.any():
             break
         n, off = n[up], (a[up] * n[up]).sum(1)  # plane: x . n = off
-        pre = (np.abs(P[:presample] @ n.T - off) < thresh).sum(0)
+        tpre = tP[:presample, None] if np.ndim(tP) else tP
+        pre = (np.abs(P[:presample] @ n.T - off) < tpre).sum(0)
         top = np.argsort(-pre)[:finalists]
-        best = top[np.argmax((np.abs(P @ n[top].T - off[top]) < thresh).sum(0))]
+        tfin = tP[:, None] if np.ndim(tP) else tP
+        best = top[np.argmax((np.abs(P @ n[top].T - off[top]) < tfin).sum(0))]
         nb_, ob_ = n[best], off[best]
         near = np.abs(points @ nb_ - ob_) < thresh
         q = points[avail & near]
@@ -287,7 +295,7 @@ def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=2,
     return keep
 
 
-def _depth_edges(depth: np.ndarray, s: int) -> np.ndarray:
+def _depth_edges(depth: np.ndarray, s: int, noise=None) -> np.ndarray:
     """Edges at depth discontinuities on the image decimated by s: (ceil(H/s), ceil(W/s)).
 
     A jump of more than 6 cm (scaled with depth: Kinect quantisation grows with z^2;
@@ -295,14 +303,18 @@ def _depth_edges(depth: np.ndarray, s: int) -> np.ndarray:
     decimated pixel in its row or column (both when as near), so every jump on the way
     between two decimated 4-neighbours cuts them apart. With s <= 2 this is the full-image
     edge map (the pixels on both sides of a jump) sampled at the decimated pixels.
+    With a `noise` model sigma(z) the jump is at least 3 sigma(z) (a noisier sensor's
+    surfaces would otherwise fall apart into fragments).
     """
     def marks(lines):  # (n, L) full-image lines -> (n, ceil(L / s)) edges on them
         lines = np.nan_to_num(lines, nan=0.0)
         n, length = lines.shape
         m = -(-length // s)
         jump = np.zeros((n, m * s), bool)  # [:, j]: between pixels j and j + 1
-        jump[:, :length - 1] = np.abs(np.diff(lines, axis=1)) > \
-            0.06 * np.maximum(lines[:, 1:] / 3.0, 1.0) ** 2
+        thr = 0.06 * np.maximum(lines[:, 1:] / 3.0, 1.0) ** 2
+        if noise is not None:
+            thr = np.maximum(thr, 3.0 * noise(np.maximum(lines[:, 1:], lines[:, :-1])))
+        jump[:, :length - 1] = np.abs(np.diff(lines, axis=1)) > thr
         jump = jump.reshape(n, m, s)  # [:, c, i]: between pixels c * s + i and c * s + i + 1
         edge = jump[:, :, :(s + 1) // 2].any(2)  # i <= (s - 1) / 2: nearer to pixel c
         edge[:, 1:] |= jump[:, :-1, s // 2:].any(2)  # i >= (s - 1) / 2: nearer to c + 1
@@ -475,7 +487,7 @@ def _candidates(fg, depth, d, K, s, min_px, max_persons, depth_min, depth_max):
 
 def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: float,
                  min_pixels: int = 400, max_persons: int = 5, seed: int = 0,
-                 peel: bool = False) -> list[Crop]:
+                 peel: bool = False, noise=None) -> list[Crop]:
     """Person candidates in a depth image, most central first (see the module doc).
 
     Args:
@@ -485,6 +497,8 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
         peel: peel planes off the blobs too big for a person even when other candidates
             were found (by default only when none was): the second look of a frame whose
             candidates all proved not to be persons (a box beside a person at a wall).
+        noise: optional expected sensor noise sigma(z) (sensor_noise.NoiseModel): the
+            depth-jump and plane-inlier thresholds widen to it (see those steps).
 
     Returns:
         Crops (with `mask`, and `exclude` where a neighbour is big enough), at most
@@ -500,10 +514,11 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
         return []
     rng = np.random.default_rng(seed)
     planes: list = []
-    keep = _remove_planes(pixel_points(r * s, c * s, d[r, c], K), rng, planes=planes)
+    keep = _remove_planes(pixel_points(r * s, c * s, d[r, c], K), rng, planes=planes,
+                          noise=noise)
     fg = np.zeros_like(valid)
     fg[valid] = keep
-    edges = _depth_edges(depth, s)
+    edges = _depth_edges(depth, s, noise)
     crops, lab, rejected = _candidates(fg & ~edges, depth, d, K, s, min_px, max_persons,
                                        depth_min, depth_max)
     peeled = None  # decimated pixels of the planes peeled off (hidden from the network)
@@ -516,7 +531,8 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
         for k in rejected:
             rr, cc = np.nonzero(lab == k)
             z = float(np.median(d[rr, cc]))
-            thresh = max(0.03, 2 * (0.0012 + 0.0019 * (z - 0.4) ** 2))
+            thresh = max(0.03, 2 * (0.0012 + 0.0019 * (z - 0.4) ** 2),
+                         0.0 if noise is None else 2 * float(noise(z)))
             on_plane = ~_remove_planes(pixel_points(rr * s, cc * s, d[rr, cc], K), rng,
                                        max_planes=3, min_up=-1.0, thresh=thresh,
                                        planes=planes)

@@ -125,6 +125,18 @@ def plot_curves(log, path):
     img.save(path)
 
 
+def load_checkpoint(path, device='cpu') -> dict:
+    """A training checkpoint, loaded without running code from it (weights_only=True;
+    numpy float scalars, which earlier checkpoints hold in their optimizer state, are
+    the only types allowed beyond torch's own)."""
+    safe = [np.dtype, type(np.dtype(np.float64)), np.float64]
+    scalar = getattr(getattr(np, '_core', np.core).multiarray, 'scalar', None)
+    if scalar is not None:
+        safe.append(scalar)
+    with torch.serialization.safe_globals(safe):
+        return torch.load(path, map_location=device, weights_only=True)
+
+
 def save_weights(net, path, meta):
     sd = {k: (v.detach().cpu().half() if v.is_floating_point() else v.detach().cpu())
           for k, v in net.state_dict().items()}
@@ -153,6 +165,12 @@ def main(argv=None):
                     help='probability that a training body leaving the sensor image is '
                          'cropped as the sensor sees it (SampleConfig.truncate, default '
                          '0.5; the validation set keeps the default)')
+    ap.add_argument('--poses', default='templates', choices=['templates', 'broad'],
+                    help='training and validation poses (PoseSampler mode; default the '
+                         'activity templates)')
+    ap.add_argument('--sensors', default='', metavar='NAMES',
+                    help="comma-separated synth.sensors presets drawn per sample, or 'all' "
+                         "(default: Kinect v1 noise on every camera preset)")
     ap.add_argument('--workers', type=int, default=max(1, (os.cpu_count() or 2) - 1))
     ap.add_argument('--device', default='auto', choices=['auto', 'cpu', 'cuda'])
     ap.add_argument('--seed', type=int, default=7)
@@ -181,13 +199,13 @@ def main(argv=None):
     net = build_network(args.kind).to(device)
     opt = torch.optim.AdamW(net.parameters(), lr=args.lr, weight_decay=1e-4)
     if args.init:
-        sd = torch.load(args.init, map_location='cpu', weights_only=False)['state_dict']
+        sd = torch.load(args.init, map_location='cpu', weights_only=True)['state_dict']
         net.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in sd.items()})
     ckpt_path = args.ckpt or args.out + '.ckpt'
     log_path = os.path.splitext(args.out)[0] + '.log.json'
     step, log, ema_state = 0, [], None
     if args.resume and os.path.exists(ckpt_path):
-        ck = torch.load(ckpt_path, map_location=device, weights_only=False)
+        ck = load_checkpoint(ckpt_path, device)
         net.load_state_dict(ck['net'])
         opt.load_state_dict(ck['opt'])
         step, log = ck['step'], ck['log']
@@ -203,7 +221,13 @@ def main(argv=None):
 
     body = body_factory()
     t_val = time.time()
-    scfg = SampleConfig(head_turn_deg=args.head_turn)
+    from smpl_depth_ros.synth.sensors import SENSORS
+    sensors = (tuple(SENSORS) if args.sensors == 'all' else
+               tuple(n for n in args.sensors.split(',') if n))
+    unknown = [n for n in sensors if n not in SENSORS]
+    if unknown:
+        ap.error(f'unknown sensors {unknown}; presets: {sorted(SENSORS)}')
+    scfg = SampleConfig(head_turn_deg=args.head_turn, poses=args.poses, sensors=sensors)
     val = make_fixed_set(body, args.val_size, args.val_seed, scfg)
     print(f'validation set: {args.val_size} samples in {time.time() - t_val:.1f} s',
           file=sys.stderr)
@@ -217,7 +241,7 @@ def main(argv=None):
                                      prefetch_factor=4 if args.workers > 0 else None)
     meta = dict(kind=args.kind, backend=args.backend, input_size=INPUT_SIZE,
                 body_vertices=int(body.num_vertices), seed=args.seed, val_seed=args.val_seed,
-                truncate=tcfg.truncate,
+                truncate=tcfg.truncate, poses=tcfg.poses, sensors=list(tcfg.sensors),
                 command='train_correspondence ' + ' '.join(argv if argv is not None
                                                             else sys.argv[1:]))
     try:
@@ -251,7 +275,7 @@ def main(argv=None):
         opt.zero_grad(set_to_none=True)
         loss.backward()
         for g in opt.param_groups:
-            g['lr'] = lr_at(progress(step))
+            g['lr'] = float(lr_at(progress(step)))
         opt.step()
         if ema is not None:
             ema.update(net)

@@ -40,6 +40,7 @@ from sensor_msgs.msg import CameraInfo, Image, JointState
 from visualization_msgs.msg import Marker, MarkerArray
 
 from smpl_depth_ros.config import FitConfig, PipelineConfig
+from smpl_depth_ros.sensor_noise import check_sensor, sensor_choices
 from smpl_depth_ros.ros import adapters as A
 from smpl_depth_ros.ros.runner import ros_args, run_nodes
 from smpl_depth_ros.types import InputError
@@ -65,6 +66,9 @@ _CORE_DOC = {
     'tracking_max_gap_s': 'reset tracking after a longer gap between frame stamps (s)',
     'reject_residual_m': 'person candidates whose fit leaves a larger median residual are '
                          'not reported (m)',
+    'sensor': "the depth sensor, whose noise the thresholds scale with: 'auto' (measured "
+              "from the frames), a preset (e.g. 'realsense_d435', 'oak_d', "
+              "'azure_kinect_nfov', 'kinect_v1') or 'none' (fixed thresholds)",
     'shape_sample_every': 'tracking: every n-th tracked frame also fits the shape; tracked '
                           "frames fit the pose at the mean of these samples (0: keep the "
                           "cold fit's shape)",
@@ -191,7 +195,7 @@ def _descriptor(name: str, default) -> ParameterDescriptor:
     else:
         d.type = ParameterType.PARAMETER_STRING
     choices = {'backend': BACKENDS, 'device': DEVICES, 'fit.solver': SOLVERS,
-               'segmentation': SEGMENTATIONS,
+               'segmentation': SEGMENTATIONS, 'sensor': sensor_choices(),
                'qos_reliability': tuple(RELIABILITY)}.get(name)
     if choices:
         d.additional_constraints = 'one of: ' + ', '.join(choices)
@@ -261,6 +265,8 @@ def validate(values: dict[str, Any]) -> str | None:
     if values['segmentation'] not in SEGMENTATIONS:
         return (f'segmentation must be one of {SEGMENTATIONS}, '
                 f"got '{values['segmentation']}'")
+    if values.get('sensor') is not None and check_sensor(values['sensor']):
+        return check_sensor(values['sensor'])
     if values['qos_reliability'] not in RELIABILITY:
         return (f"qos_reliability must be one of {tuple(RELIABILITY)}, "
                 f"got '{values['qos_reliability']}'")

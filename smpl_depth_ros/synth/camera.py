@@ -24,6 +24,14 @@ differ by a few per cent, and a real stream should always use its own CameraInfo
 * azure_kinect_nfov: 640x576 NFOV unbinned, fx = fy ~ 504, c ~ (320, 288) (typical
   factory calibration values are within a few pixels). Range 0.5-3.86 m (Microsoft's
   operating range for this mode; the device invalidates pixels beyond it).
+* azure_kinect_nfov_binned: 320x288 NFOV 2x2 binned, fx = fy ~ 252, c ~ (160, 144);
+  range 0.5-5.46 m.
+* astra: Orbbec Astra, 640x480, fx = fy ~ 570, c = (319.5, 239.5) (58.4 x 45.5 degree
+  FOV); range 0.6-8 m.
+* realsense_d455: 848x480, fx = fy ~ 428 (86 x 57 degree depth FOV), c = (424, 240);
+  range 0.4-10 m (95 mm baseline).
+* oak_d_pro: 640x400 like oak_d (the same OV9282 pair, an IR dot projector added).
+The noise models that go with them are in `synth.sensors`.
 """
 from __future__ import annotations
 
@@ -118,6 +126,15 @@ CAMERAS: dict[str, Camera] = {
                     min_range=0.35, max_range=12.0),
     'azure_kinect_nfov': Camera(640, 576, 504.0, 504.0, 320.0, 288.0,
                                 name='azure_kinect_nfov', min_range=0.5, max_range=3.86),
+    'azure_kinect_nfov_binned': Camera(320, 288, 252.0, 252.0, 160.0, 144.0,
+                                       name='azure_kinect_nfov_binned', min_range=0.5,
+                                       max_range=5.46),
+    'astra': Camera(640, 480, 570.0, 570.0, 319.5, 239.5, name='astra', min_range=0.6,
+                    max_range=8.0),
+    'realsense_d455': Camera(848, 480, 428.0, 428.0, 424.0, 240.0, name='realsense_d455',
+                             min_range=0.4, max_range=10.0),
+    'oak_d_pro': Camera(640, 400, 400.0, 400.0, 320.0, 200.0, name='oak_d_pro',
+                        min_range=0.35, max_range=12.0),
 }
 
 

@@ -2,7 +2,8 @@
 
 A frame is a posed body (synth.poses) placed 1-5 m in front of a camera, optionally in
 a random room (synth.render.sample_background), ray-cast (synth.render) and optionally
-corrupted by the sensor noise model (synth.noise). Ground truth: per-pixel part labels
+corrupted by a sensor noise model (`SynthParams.sensor`: a `synth.sensors` preset; by
+default the Kinect v1 structured-light model of synth.noise). Ground truth: per-pixel part labels
 and template vertex ids (following the noisy depth: 0 / -1 where it is invalid), the
 posed mesh and joints in the camera optical frame, and the body parameters.
 
@@ -41,7 +42,9 @@ class SynthParams:
         seq_step_m: largest root move between two sequence keyframes (metres).
         seq_yaw_step_deg: largest yaw change between two sequence keyframes.
         pose_key_every: frames between pose keyframes in sequences.
-        noise: sensor noise parameters.
+        noise: structured-light noise parameters (used when `sensor` is None).
+        sensor: a `synth.sensors.Sensor` whose noise model replaces `noise` (any class:
+            structured light, stereo, time of flight), at `strength` (1 = nominal).
         background: scene layout parameters.
     """
 
@@ -53,11 +56,13 @@ class SynthParams:
     seq_yaw_step_deg: float = 60.0
     pose_key_every: int = 15
     noise: noise_mod.NoiseParams = field(default_factory=noise_mod.NoiseParams)
+    sensor: object = None
+    strength: float = 1.0
     background: render_mod.BackgroundParams = field(
         default_factory=render_mod.BackgroundParams)
 
 
-def _depth_range(camera: Camera, p: SynthParams) -> tuple[float, float]:
+def root_depth_range(camera: Camera, p: SynthParams) -> tuple[float, float]:
     lo = max(p.depth_range[0], camera.min_range + 0.3)
     hi = min(p.depth_range[1], camera.max_range - 0.3)
     if hi < lo:
@@ -129,8 +134,17 @@ def _finish(body: BodyModel, camera: Camera, verts, joints, pose, shape, go, tra
     labels = np.where(inrange, r.labels, 0).astype(np.uint8)
     vids = np.where(inrange, r.vertex_ids, -1).astype(np.int32)
     depth = clean
-    if noise:
+    if noise and p.sensor is not None:
+        from smpl_depth_ros.synth.sensors import hair_vertices
+        dark = None
+        if p.sensor.kind == 'tof':
+            hair = hair_vertices(body)
+            dark = (vids >= 0) & hair[np.maximum(vids, 0)]
+        nr = p.sensor.apply(clean, r.normals_cos, noise_rng, p.strength, fx=camera.fx,
+                            dark=dark)
+    elif noise:
         nr = noise_mod.apply_noise(clean, r.normals_cos, noise_rng, p.noise, fx=camera.fx)
+    if noise:
         ok = (nr.depth >= camera.min_range) & (nr.depth <= camera.max_range)
         depth = np.where(ok, nr.depth, 0).astype(np.float32)
         labels = np.where(ok, nr.take(labels, 0), 0).astype(np.uint8)
@@ -170,13 +184,16 @@ def make_frame(body: BodyModel, sampler: PoseSampler, rng: np.random.Generator,
     p = params or SynthParams()
     scene_seed, noise_seed = rng.integers(0, 2**63 - 1, 2)
     shape = sample_shape(body, rng)[0]
-    pose = sampler.sample(rng)[0]
+    pose, root_tilt = sampler.sample_posed(rng)
     yaw = rng.uniform(-np.pi, np.pi)
     pitch, roll = np.deg2rad(rng.uniform(-p.tilt_deg, p.tilt_deg, 2))
-    z = rng.uniform(*_depth_range(camera, p))
-    go, transl = placement(body, shape, yaw, pitch, roll, np.array([0.0, 0.0, z]))
+    z = rng.uniform(*root_depth_range(camera, p))
+    go, transl = placement(body, shape, yaw, pitch + root_tilt[0], roll + root_tilt[1],
+                           np.array([0.0, 0.0, z]))
     verts, joints = _forward(body, pose, shape, go, transl)
-    up = _up_axis(body, go)
+    # the room's up: the camera tilt's, not a lying body's
+    up = _up_axis(body, go if not root_tilt.any() else
+                  placement(body, shape, yaw, pitch, roll, np.zeros(3))[0])
     x = _pick(rng, *_view_interval(camera, verts, 0))
     y = _pick(rng, *_view_interval(camera, verts, 1),
               pref=_height_interval(verts, up, x, p.camera_height))
@@ -222,7 +239,7 @@ def make_sequence(body: BodyModel, sampler: PoseSampler, rng: np.random.Generato
     shape = sample_shape(body, rng)[0]
     poses = sampler.sequence(rng, frames, p.pose_key_every)
     pitch, roll = np.deg2rad(rng.uniform(-p.tilt_deg, p.tilt_deg, 2))
-    zlo, zhi = _depth_range(camera, p)
+    zlo, zhi = root_depth_range(camera, p)
     nk = frames // p.seq_key_every + 2
     keys = np.zeros((nk, 3))  # x, z, yaw
     for k in range(nk):

@@ -1,10 +1,19 @@
 """Pose, shape and placement sampling for synthetic data (no ROS).
 
 Poses are built in canonical anatomical axes (x = left, y = up, z = forward; see
-body.base) from activity templates (standing, walking, sitting, reaching, crouching,
-arms crossed, ...) with random amplitudes and per-joint noise, mirrored at random, clipped
-to the joint limits the fitting prior uses, then mapped to the model frame. The same code
-serves every backend through the generic joint names.
+body.base) and mapped to the model frame; the same code serves every backend through the
+generic joint names. Two distributions (`PoseSampler(mode=...)`):
+
+* 'templates': activity templates (standing, walking, sitting, reaching, crouching, arms
+  crossed, ...) with random amplitudes and per-joint noise, mirrored at random, clipped
+  to the joint limits the fitting prior uses;
+* 'broad': poses people take beyond those activities - a mixture of the templates, more
+  postures (`BROAD_TEMPLATES`: kneeling, deep squats, sitting on the floor, bending to
+  the floor, reaching overhead, lifting, kicking, on all fours, lying) with wider noise
+  and amplitudes, and poses drawn uniformly within the anatomical joint limits, either
+  independently per joint or left/right coupled (elbows and knees as hinges, within
+  their flexion range). Postures with a whole-body tilt (on all fours, lying) carry a
+  root pitch or roll (`ROOT`, degrees) that the frame placement adds.
 """
 from __future__ import annotations
 
@@ -43,6 +52,70 @@ TEMPLATES = {
 TEMPLATE_WEIGHTS = {'stand': 2.0, 'walk': 3.0, 'sit': 1.0, 'reach_up': 1.0,
                     'reach_forward': 1.0, 'crouch': 0.7, 'arms_crossed': 1.0, 't_pose': 0.5,
                     'wave': 1.0, 'lunge': 0.7, 'bend': 0.7, 'twist': 0.8}
+# Postures beyond the activities (same conventions; 'ROOT': (pitch, roll) in degrees
+# of the whole body, pitch > 0 leaning forward, added to the camera's tilt).
+BROAD_TEMPLATES = {
+    'kneel': {'left_hip': (-5, 0, 5), 'right_hip': (-5, 0, -5), 'left_knee': (100, 0, 0),
+              'right_knee': (100, 0, 0), 'left_ankle': (30, 0, 0), 'right_ankle': (30, 0, 0),
+              'ELBOW': (30, 30)},
+    'kneel_one': {'left_hip': (-90, 0, 5), 'right_hip': (0, 0, -5), 'left_knee': (90, 0, 0),
+                  'right_knee': (95, 0, 0), 'right_ankle': (30, 0, 0), 'spine1': (10, 0, 0),
+                  'ELBOW': (40, 20)},
+    'squat_deep': {'left_hip': (-125, 0, 25), 'right_hip': (-125, 0, -25),
+                   'left_knee': (150, 0, 0), 'right_knee': (150, 0, 0),
+                   'left_ankle': (-35, 0, 0), 'right_ankle': (-35, 0, 0),
+                   'spine1': (40, 0, 0), 'spine2': (20, 0, 0), 'left_shoulder': (-60, 0, 0),
+                   'right_shoulder': (-60, 0, 0), 'ELBOW': (60, 60)},
+    'sit_floor': {'left_hip': (-90, 0, 20), 'right_hip': (-90, 0, -20),
+                  'left_knee': (20, 0, 0), 'right_knee': (20, 0, 0), 'spine1': (20, 0, 0),
+                  'left_shoulder': (-30, 0, 10), 'right_shoulder': (-30, 0, -10),
+                  'ELBOW': (30, 30)},
+    'sit_cross': {'left_hip': (-80, -35, 40), 'right_hip': (-80, 35, -40),
+                  'left_knee': (140, 0, 0), 'right_knee': (140, 0, 0), 'spine1': (15, 0, 0),
+                  'ELBOW': (70, 70)},
+    'bend_floor': {'left_hip': (-100, 0, 5), 'right_hip': (-100, 0, -5),
+                   'spine1': (45, 0, 0), 'spine2': (30, 0, 0), 'spine3': (25, 0, 0),
+                   'neck': (-20, 0, 0), 'left_shoulder': (-90, 0, 0),
+                   'right_shoulder': (-90, 0, 0), 'ELBOW': (10, 10)},
+    'lift_box': {'left_hip': (-80, 0, 20), 'right_hip': (-80, 0, -20),
+                 'left_knee': (90, 0, 0), 'right_knee': (90, 0, 0), 'spine1': (30, 0, 0),
+                 'spine2': (10, 0, 0), 'left_shoulder': (-50, 0, -20),
+                 'right_shoulder': (-50, 0, 20), 'ELBOW': (60, 60)},
+    'reach_overhead': {'left_shoulder': (-10, 0, 115), 'right_shoulder': (-10, 0, -115),
+                       'spine1': (-15, 0, 0), 'spine2': (-10, 0, 0), 'neck': (-25, 0, 0),
+                       'ELBOW': (15, 15)},
+    'reach_side': {'left_shoulder': (0, 0, 90), 'spine1': (0, 0, -20), 'spine2': (0, 0, -15),
+                   'left_hip': (0, 0, 20), 'right_knee': (30, 0, 0), 'ELBOW': (5, 60)},
+    'kick': {'left_hip': (-90, 0, 0), 'left_knee': (10, 0, 0), 'right_knee': (15, 0, 0),
+             'spine1': (-10, 0, 0), 'left_shoulder': (20, 0, 30),
+             'right_shoulder': (-30, 0, -40), 'ELBOW': (50, 50)},
+    'throw': {'left_shoulder': (-20, -60, 100), 'right_shoulder': (-60, 0, 0),
+              'spine1': (0, 30, 0), 'spine2': (0, 20, 0), 'left_hip': (20, 0, 0),
+              'right_hip': (-30, 0, 0), 'right_knee': (30, 0, 0), 'ELBOW': (100, 40)},
+    'hands_on_hips': {'left_shoulder': (0, 0, 40), 'right_shoulder': (0, 0, -40),
+                      'ELBOW': (110, 110), 'left_wrist': (0, 0, 20)},
+    'phone': {'left_shoulder': (-30, 0, 20), 'ELBOW': (145, 20), 'head': (20, 0, 0),
+              'neck': (15, 0, 0)},
+    'all_fours': {'left_hip': (-90, 0, 5), 'right_hip': (-90, 0, -5),
+                  'left_knee': (95, 0, 0), 'right_knee': (95, 0, 0),
+                  'left_shoulder': (-90, 0, 5), 'right_shoulder': (-90, 0, -5),
+                  'neck': (-30, 0, 0), 'ROOT': (85, 0)},
+    'lie_back': {'left_hip': (-5, 0, 10), 'right_hip': (-5, 0, -10),
+                 'left_shoulder': (0, 0, 30), 'right_shoulder': (0, 0, -30),
+                 'ELBOW': (20, 20), 'ROOT': (-85, 0)},
+    'lie_side': {'left_hip': (-40, 0, 0), 'right_hip': (-20, 0, 0), 'left_knee': (60, 0, 0),
+                 'right_knee': (40, 0, 0), 'left_shoulder': (-60, 0, 0),
+                 'right_shoulder': (-80, 0, 0), 'ELBOW': (60, 40), 'ROOT': (0, 80)},
+}
+BROAD_TEMPLATE_WEIGHTS = {'kneel': 1.0, 'kneel_one': 1.0, 'squat_deep': 1.0,
+                          'sit_floor': 0.8, 'sit_cross': 0.6, 'bend_floor': 1.0,
+                          'lift_box': 1.0, 'reach_overhead': 1.0, 'reach_side': 1.0,
+                          'kick': 0.7, 'throw': 0.7, 'hands_on_hips': 0.7, 'phone': 0.7,
+                          'all_fours': 0.5, 'lie_back': 0.4, 'lie_side': 0.4}
+# 'broad' mixture: activity templates, broad postures, independent and coupled uniform
+# draws within the joint limits.
+BROAD_MIX = {'templates': 0.3, 'postures': 0.35, 'uniform': 0.15, 'coupled': 0.2}
+_ALL_TEMPLATES = {**TEMPLATES, **BROAD_TEMPLATES}
 _MIRROR_AXES = np.array([1.0, -1.0, -1.0])  # reflection x -> -x of an axis-angle vector
 
 
@@ -75,6 +148,10 @@ class PoseSampler:
     Args:
         body: the body model (generic joint names are looked up in it).
         noise_deg: per-joint, per-axis Gaussian noise added to every template.
+        mode: 'templates' (the activity templates; the stream earlier bags and training
+            runs drew) or 'broad' (see the module doc).
+        root_tilt: in 'broad' mode, whether postures may tilt the whole body (on all
+            fours, lying); `sample_with_root` returns that tilt.
         head_turn_deg: 0 (default), or the head is also turned: a yaw drawn uniformly in
             +-head_turn_deg added at the neck and again at the head (up to twice that in
             all, within the joint limits), and a head pitch in +-head_turn_deg / 2. The
@@ -82,8 +159,13 @@ class PoseSampler:
             Off, the random stream is the one earlier bags and training runs drew.
     """
 
-    def __init__(self, body: BodyModel, noise_deg: float = 9.0, head_turn_deg: float = 0.0):
+    def __init__(self, body: BodyModel, noise_deg: float = 9.0, head_turn_deg: float = 0.0,
+                 mode: str = 'templates', root_tilt: bool = True):
+        if mode not in ('templates', 'broad'):
+            raise ValueError(f"pose mode must be 'templates' or 'broad', got {mode!r}")
         self.body = body
+        self.mode = mode
+        self.root_tilt = bool(root_tilt)
         self.head_turn = np.deg2rad(head_turn_deg)
         self.names = list(body.joint_names[1:])
         self.limits = body.limits_canonical().cpu().numpy().astype(np.float64)  # (P,3,2)
@@ -93,11 +175,18 @@ class PoseSampler:
         self.templates = list(TEMPLATES)
         w = np.array([TEMPLATE_WEIGHTS[t] for t in self.templates])
         self.weights = w / w.sum()
+        self.postures = [t for t in BROAD_TEMPLATES if root_tilt or 'ROOT' not in
+                         BROAD_TEMPLATES[t]]
+        w = np.array([BROAD_TEMPLATE_WEIGHTS[t] for t in self.postures])
+        self.posture_weights = w / w.sum()
+        self.hinges = [i for i, n in enumerate(self.names) if n.endswith(('_knee', '_elbow'))]
 
     def template(self, name: str, amplitude: float = 1.0, mirror: bool = False) -> np.ndarray:
         """(P, 3) canonical axis-angle (radians) of a template."""
         out = np.zeros((len(self.names), 3))
-        for jn, val in TEMPLATES[name].items():
+        for jn, val in _ALL_TEMPLATES[name].items():
+            if jn == 'ROOT':
+                continue
             if jn == 'ELBOW':
                 for side, ang in zip(('left', 'right'), val):
                     key = f'{side}_elbow'
@@ -123,7 +212,78 @@ class PoseSampler:
         """Canonical (..., P, 3) -> model-frame axis-angle (float32)."""
         return (canon @ self.C).astype(np.float32)
 
+    def _hinge(self, i: int, flexion: float) -> np.ndarray:
+        n = self.names[i]
+        if n.endswith('_elbow'):
+            return self.elbows[n] * flexion
+        return np.array([flexion, 0.0, 0.0])
+
+    def _uniform(self, rng: np.random.Generator, coupled: bool) -> np.ndarray:
+        """Uniform within the joint limits (knees and elbows as hinges), the spine, neck,
+        collars and wrists drawn in the inner half of theirs; coupled: the right side
+        mirrors the left, with noise."""
+        lo, hi = self.limits[..., 0], self.limits[..., 1]
+        inner = np.array([not n.endswith(('_hip', '_shoulder', '_knee', '_elbow'))
+                          for n in self.names])
+        c, h = 0.5 * (lo + hi), 0.5 * (hi - lo)
+        h = np.where(inner[:, None], 0.5 * h, h)
+        pose = rng.uniform(c - h, c + h)
+        for i in self.hinges:
+            pose[i] = self._hinge(i, rng.uniform(0.0, np.deg2rad(150)))
+        if coupled:
+            for i, n in enumerate(self.names):
+                if n.startswith('left_') and _mirror_name(n) in self.names:
+                    j = self.names.index(_mirror_name(n))
+                    if i in self.hinges:
+                        ang = float(np.linalg.norm(pose[i]))
+                        pose[j] = self._hinge(j, ang)
+                    else:
+                        pose[j] = pose[i] * _MIRROR_AXES
+                    pose[j] = pose[j] + rng.normal(0, 2 * self.noise, 3)
+        return pose
+
+    def sample_with_root(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """(P, 3) canonical pose and the whole-body (pitch, roll) in radians it implies
+        (non-zero only for 'broad' postures such as lying)."""
+        root = np.zeros(2)
+        if self.mode == 'templates':
+            return self.sample_canonical(rng), root
+        kinds = list(BROAD_MIX)
+        k = kinds[rng.choice(len(kinds), p=np.array(list(BROAD_MIX.values())))]
+        if k == 'templates':
+            return self._from_templates(rng, self.templates, self.weights, 9.0), root
+        if k == 'postures':
+            t = self.postures[rng.choice(len(self.postures), p=self.posture_weights)]
+            pose = self._from_templates(rng, [t], np.ones(1), 14.0, amp=(0.6, 1.15))
+            r = BROAD_TEMPLATES[t].get('ROOT')
+            if r is not None:
+                root = np.deg2rad(np.asarray(r, np.float64)) * rng.uniform(0.85, 1.05)
+                if self.last_mirror:
+                    root[1] = -root[1]
+            return pose, root
+        return self.clip(self._uniform(rng, coupled=k == 'coupled')), root
+
+    def _from_templates(self, rng, names, weights, noise_deg, amp=(0.3, 1.15)):
+        t = names[rng.choice(len(names), p=weights)]
+        self.last_mirror = bool(rng.random() < 0.5)
+        pose = self.template(t, rng.uniform(*amp), mirror=self.last_mirror)
+        pose = pose + rng.normal(0, np.deg2rad(noise_deg), pose.shape)
+        return self._head(rng, pose)
+
+    def _head(self, rng, pose):
+        if self.head_turn > 0:
+            yaw = rng.uniform(-self.head_turn, self.head_turn)
+            for j in ('neck', 'head'):
+                if j in self.names:
+                    pose[self.names.index(j), 1] += yaw
+            if 'head' in self.names:
+                pose[self.names.index('head'), 0] += rng.uniform(-0.5, 0.5) * self.head_turn
+        return self.clip(pose)
+
     def sample_canonical(self, rng: np.random.Generator) -> np.ndarray:
+        """(P, 3) canonical pose (any whole-body tilt of a 'broad' posture dropped)."""
+        if self.mode == 'broad':
+            return self.sample_with_root(rng)[0]
         t = self.templates[rng.choice(len(self.templates), p=self.weights)]
         amp = rng.uniform(0.3, 1.15)
         pose = self.template(t, amp, mirror=bool(rng.random() < 0.5))
@@ -140,6 +300,11 @@ class PoseSampler:
     def sample(self, rng: np.random.Generator, n: int = 1) -> np.ndarray:
         """(n, P, 3) model-frame axis-angle poses."""
         return self.to_model(np.stack([self.sample_canonical(rng) for _ in range(n)]))
+
+    def sample_posed(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """One (P, 3) model-frame pose and its whole-body (pitch, roll) in radians."""
+        canon, root = self.sample_with_root(rng)
+        return self.to_model(canon[None])[0], root
 
     def sequence(self, rng: np.random.Generator, frames: int, keyframe_every: int = 15):
         """(frames, P, 3) smooth trajectory: cosine-interpolated random key poses."""

@@ -1,17 +1,24 @@
 """synth_bag: write a synthetic depth-camera ROS 2 bag plus exact ground truth.
 
     synth_bag --out /tmp/synth --frames 200 --seed 1 [--sequence] [--camera kinect_v1]
+    synth_bag --out /tmp/d435 --sensor realsense_d435 --poses broad --depth-range 3 3.5
 
 The bag (rosbags, no ROS install needed) holds /camera/depth/image_raw and
 /camera/depth/camera_info (frame camera_depth_optical_frame). Ground truth goes next to
 it in `<out>.gt.npz`: stamps (int64 ns, equal to the header stamps), vertices, faces,
 joints, joint_names, pose, shape, global_orient, transl, body_model, topology, K, width,
-height, labels (N, H, W uint8), vertex_ids (N, H, W int32, -1 empty), seed, camera.
+height, labels (N, H, W uint8), vertex_ids (N, H, W int32, -1 empty), seed, camera,
+sensor, strength, poses.
+
+`--sensor` takes a depth-sensor preset (synth.sensors: structured light, active stereo,
+time of flight): its camera and its noise model. Without it, the Kinect v1 noise model
+is applied on `--camera` (the original protocol).
 A JSON summary line is printed last.
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -46,7 +53,17 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument('--out', required=True, help='bag directory to create (must not exist)')
     ap.add_argument('--frames', type=int, default=200)
     ap.add_argument('--seed', type=int, default=0)
+    from smpl_depth_ros.synth.sensors import SENSORS
     ap.add_argument('--camera', default='kinect_v1', choices=sorted(CAMERAS))
+    ap.add_argument('--sensor', default=None, choices=sorted(SENSORS),
+                    help='a sensor preset: its camera and noise model (overrides --camera)')
+    ap.add_argument('--strength', type=float, default=1.0,
+                    help='noise strength of --sensor (1 = nominal)')
+    ap.add_argument('--poses', default='templates', choices=['templates', 'broad'],
+                    help="'templates': the activity templates; 'broad': postures beyond "
+                         'them and uniform draws within the joint limits (synth.poses)')
+    ap.add_argument('--depth-range', type=float, nargs=2, default=None, metavar=('MIN', 'MAX'),
+                    help='root depth range in metres (default 1 5)')
     ap.add_argument('--width', type=int, default=None, help='resample the camera preset')
     ap.add_argument('--height', type=int, default=None, help='resample the camera preset')
     ap.add_argument('--rate', type=float, default=30.0, help='frame rate for the stamps (Hz)')
@@ -73,6 +90,12 @@ def main(argv=None) -> int:
     if args.rate <= 0:
         print('synth_bag: --rate must be > 0', file=sys.stderr)
         return 2
+    if not args.strength > 0:
+        print('synth_bag: --strength must be > 0', file=sys.stderr)
+        return 2
+    if args.depth_range is not None and not 0 < args.depth_range[0] <= args.depth_range[1]:
+        print('synth_bag: --depth-range needs 0 < MIN <= MAX', file=sys.stderr)
+        return 2
     out = os.path.normpath(args.out)
     gt_file = gt_path(out)
     for p in (out, gt_file):
@@ -92,15 +115,30 @@ def main(argv=None) -> int:
     except (FileNotFoundError, ValueError) as e:
         print(f'synth_bag: {e}', file=sys.stderr)
         return 2
-    camera = get_camera(args.camera, args.width, args.height)
-    sampler = PoseSampler(body, head_turn_deg=args.head_turn)
+    from smpl_depth_ros.synth.sensors import get_sensor
+    sensor = None
+    if args.sensor:
+        sensor = get_sensor(args.sensor, args.width, args.height)
+        camera = sensor.camera
+    else:
+        camera = get_camera(args.camera, args.width, args.height)
+    params = dataset.SynthParams(sensor=sensor, strength=args.strength)
+    if args.depth_range is not None:
+        params = dataclasses.replace(params, depth_range=tuple(args.depth_range))
+    sampler = PoseSampler(body, head_turn_deg=args.head_turn, mode=args.poses)
     rng = np.random.default_rng(args.seed)
     noise, bg = not args.no_noise, not args.no_background
     N, H, W = args.frames, camera.height, camera.width
+    try:
+        dataset.root_depth_range(camera, params)
+    except ValueError as e:
+        print(f'synth_bag: {e}', file=sys.stderr)
+        return 2
     if args.sequence:
-        frames = dataset.make_sequence(body, sampler, rng, camera, N, noise, bg)
+        frames = dataset.make_sequence(body, sampler, rng, camera, N, noise, bg, params)
     else:
-        frames = (dataset.make_frame(body, sampler, rng, camera, noise, bg) for _ in range(N))
+        frames = (dataset.make_frame(body, sampler, rng, camera, noise, bg, params)
+                  for _ in range(N))
 
     start = start_stamp_ns(args.seed)
     stamps = np.array([start + round(i * 1e9 / args.rate) for i in range(N)], np.int64)
@@ -133,12 +171,15 @@ def main(argv=None) -> int:
         vertex_ids=vertex_ids[:n], seed=np.int64(args.seed), camera=np.array(camera.name),
         part_labels=body.part_labels.cpu().numpy().astype(np.uint8),
         encoding=np.array(args.encoding), sequence=np.bool_(args.sequence),
-        noise=np.bool_(noise), background=np.bool_(bg))
+        noise=np.bool_(noise), background=np.bool_(bg),
+        sensor=np.array(args.sensor or ''), strength=np.float64(args.strength),
+        poses=np.array(args.poses))
     seconds = time.perf_counter() - t0
     print(json.dumps({'frames': n, 'seconds': round(seconds, 2), 'path': out,
                       'gt': gt_file, 'camera': camera.name, 'size': [W, H],
                       'encoding': args.encoding, 'storage': args.storage,
                       'sequence': bool(args.sequence), 'noise': noise, 'background': bg,
+                      'sensor': args.sensor, 'poses': args.poses,
                       'backend': body.name}))
     return 0
 

@@ -1,0 +1,276 @@
+"""Expected depth noise at run time, and the thresholds that scale with it (no ROS).
+
+Person finding and fitting compare depths and residuals against thresholds (a depth jump
+that cuts two blobs apart, a plane's inlier band, the robust scale of the data term, the
+median residual that rejects a candidate, ...). Their defaults are right for a Kinect-v1
+class sensor, whose noise at 3 m is ~1.5 cm; a D435 at 4 m has ~6 cm. `NoiseModel`
+gives sigma(z), the expected axial noise (1 sigma, metres) at depth z, from one of:
+
+* a sensor preset (`synth.sensors.SENSORS`, e.g. 'realsense_d435'), evaluated at the
+  stream's own focal length (a stereo camera's error grows as its resolution drops);
+* 'auto': estimated from the frames themselves (`estimate_noise`): planes fitted to
+  small patches of the image (walls, floor, the body), the patches' residual scatter per
+  0.5 m depth bin, averaged over frames (`AutoNoise`);
+* 'none': the fixed defaults (sigma = 0).
+
+`scaled_*` turn sigma into thresholds: each is max(default, k * sigma), so a quiet
+sensor keeps the defaults and only a noisier one widens them.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+BIN_M = 0.5           # depth bins of the estimate
+PATCH = 8             # patch side (pixels of the decimated image)
+MIN_PATCHES = 6       # patches a bin needs to count (over the frames averaged) ...
+MIN_FRAME_PATCHES = 3  # ... and in one frame
+PATCH_QUANTILE = 0.3  # a bin's sigma: this quantile of its patches' scatter (curved and
+                      # edge patches scatter more than the noise, never less)
+
+
+def kinect_v1_sigma(z) -> np.ndarray:
+    """Structured-light reference (Nguyen et al. 2012): 1.2 mm + 1.9 mm (z - 0.4)^2."""
+    z = np.asarray(z, np.float64)
+    return 0.0012 + 0.0019 * (z - 0.4) ** 2
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """sigma(z) as a table: `z` (metres, ascending) and `sigma` (metres) at those depths,
+    linear in between and extrapolated as z^2 beyond (both structured light and stereo
+    grow as z^2 far away; time of flight slower, which this overestimates a little).
+
+    Attributes:
+        z, sigma: the table (empty: no noise known, sigma = 0).
+        kind: 'structured_light' | 'stereo' | 'tof' | 'unknown'.
+        source: where it came from ('preset:NAME', 'estimated', 'none').
+    """
+
+    z: tuple = ()
+    sigma: tuple = ()
+    kind: str = 'unknown'
+    source: str = 'none'
+
+    def __call__(self, z) -> np.ndarray:
+        z = np.asarray(z, np.float64)
+        if not self.z:
+            return np.zeros_like(z)
+        zt, st = np.asarray(self.z), np.asarray(self.sigma)
+        out = np.interp(z, zt, st)
+        hi = z > zt[-1]
+        out = np.where(hi, st[-1] * (z / zt[-1]) ** 2, out)
+        lo = z < zt[0]
+        return np.where(lo, st[0] * np.maximum(z / zt[0], 0.0) ** 2, out)
+
+    def as_dict(self) -> dict:
+        return dict(kind=self.kind, source=self.source,
+                    sigma_mm_at={f'{z:.1f}': round(float(self(z)) * 1e3, 1)
+                                 for z in (1.0, 2.0, 3.0, 4.0, 5.0)})
+
+
+GRID = tuple(np.round(np.arange(0.5, 8.01, 0.25), 2))
+
+
+def preset_noise(name: str, K: np.ndarray | None = None) -> NoiseModel:
+    """The noise of a sensor preset, at the stream's focal length K[0, 0] when given."""
+    from smpl_depth_ros.synth.sensors import SENSORS
+    try:
+        s = SENSORS[name]
+    except KeyError:
+        raise ValueError(f'unknown sensor {name!r}: a preset ({", ".join(sorted(SENSORS))}), '
+                         "'auto' or 'none'") from None
+    if K is not None and s.kind == 'stereo':
+        s = s.with_camera(replace(s.camera, fx=float(K[0, 0]), fy=float(K[1, 1])))
+    return NoiseModel(GRID, tuple(float(v) for v in s.sigma(np.asarray(GRID))), s.kind,
+                      f'preset:{name}')
+
+
+@dataclass
+class NoiseEstimate:
+    """One frame's measurement: per depth bin centre, the noise and the patch count, and
+    the correlation ratio: the scatter of full-resolution patches over that of patches
+    as many pixels across on the decimated image (1 for per-pixel noise; block-matching
+    stereo noise, correlated over a few pixels, is partly absorbed by the small patches'
+    planes and scatters less there)."""
+
+    z: np.ndarray
+    sigma: np.ndarray
+    count: np.ndarray
+    corr_ratio: float
+    corr_count: int
+
+
+_V, _U = np.mgrid[0:PATCH, 0:PATCH]
+_A = np.stack([np.ones(PATCH * PATCH), _U.ravel(), _V.ravel()], 1).astype(np.float64)
+MIN_VALID = 0.85  # share of a patch's pixels that must be valid
+
+
+def _patch_bins(d: np.ndarray, every: int) -> dict[int, tuple[float, int]]:
+    """Depth bin -> (PATCH_QUANTILE of the patches' plane-residual scatter, patches) for
+    the PATCH x PATCH patches of `d` (every `every`-th one each way) that are mostly
+    valid (MIN_VALID) and span a small depth range (no depth edge in them); the plane
+    z = a + b u + c v is fitted to each patch's valid pixels."""
+    h, w = (d.shape[0] // PATCH) * PATCH, (d.shape[1] // PATCH) * PATCH
+    if h == 0 or w == 0:
+        return {}
+    p = d[:h, :w].reshape(h // PATCH, PATCH, w // PATCH, PATCH).swapaxes(1, 2)
+    p = p[::every, ::every].reshape(-1, PATCH * PATCH)
+    m = p > 0
+    n = m.sum(1)
+    ok = n >= MIN_VALID * PATCH * PATCH
+    if not ok.any():
+        return {}
+    p, m, n = p[ok], m[ok].astype(np.float64), n[ok]
+    big = np.where(m > 0, p, np.nan)
+    zmed = np.nanmedian(big, axis=1)
+    ok = np.nanmax(big, 1) - np.nanmin(big, 1) < np.maximum(0.1, 0.1 * zmed)
+    if not ok.any():
+        return {}
+    p, m, n, zmed = p[ok], m[ok], n[ok], zmed[ok]
+    M = np.einsum('nk,ki,kj->nij', m, _A, _A)
+    rhs = np.einsum('nk,ki,nk->ni', m, _A, p)
+    coef = np.linalg.solve(M + 1e-9 * np.eye(3), rhs[..., None])[..., 0]
+    r = (p - coef @ _A.T) * m  # residuals about each patch's plane, 0 where invalid
+    sig = np.sqrt((r ** 2).sum(1) / np.maximum(n - 3, 1))
+    b = np.floor(zmed / BIN_M).astype(np.int64)
+    out = {}
+    for k in np.unique(b):
+        sel = b == k
+        if sel.sum() >= MIN_FRAME_PATCHES:
+            out[int(k)] = (float(np.quantile(sig[sel], PATCH_QUANTILE)), int(sel.sum()))
+    return out
+
+
+def estimate_noise(depth: np.ndarray, step: int | None = None) -> NoiseEstimate:
+    """Measure the depth noise of one frame (see the module doc).
+
+    Args:
+        depth: (H, W) metres, 0 invalid.
+        step: decimation of the patches that measure the noise (default: about 320
+            pixels across, as person finding, and at least 2).
+    """
+    H, W = depth.shape
+    s = step or max(2, round(W / 320))
+    d = np.nan_to_num(np.asarray(depth, np.float64), nan=0.0)
+    coarse = _patch_bins(d[::s, ::s], 1)
+    fine = _patch_bins(d, s)
+    ks = sorted(coarse)
+    z = np.array([(k + 0.5) * BIN_M for k in ks])
+    sg = np.array([coarse[k][0] for k in ks])
+    cnt = np.array([coarse[k][1] for k in ks], int)
+    both = [k for k in ks if k in fine and coarse[k][0] > 1e-4]
+    corr = float(np.median([fine[k][0] / coarse[k][0] for k in both])) if both else 1.0
+    return NoiseEstimate(z, sg, cnt, corr, int(sum(fine[k][1] for k in both)))
+
+
+def classify(sigma_at_z: np.ndarray, z: np.ndarray, corr_ratio: float) -> str:
+    """A sensor class from measured noise (a heuristic; the thresholds use sigma(z),
+    not the class): time of flight when the noise is well below a structured-light
+    sensor's at the same depths (level < 0.6 of Nguyen et al.'s), stereo when it is
+    well above (> 1.3) or strongly correlated in space (ratio < 0.7; a real Kinect v1,
+    block matching too, measures 0.73 at level 1.0), else structured light."""
+    z = np.asarray(z, np.float64)
+    if not len(z):
+        return 'unknown'
+    far = z >= 1.5 if (z >= 1.5).any() else np.ones(len(z), bool)
+    level = float(np.median(np.asarray(sigma_at_z)[far] / kinect_v1_sigma(z[far])))
+    if level < 0.6:
+        return 'tof'
+    if level > 1.3 or (corr_ratio < 0.7 and level > 0.8):
+        return 'stereo'
+    return 'structured_light'
+
+
+class AutoNoise:
+    """The 'auto' sensor: `update` with frames, `model` the running estimate.
+
+    Per depth bin, a running mean of the frames' measurements weighted by their patch
+    counts (at most `memory` frames' worth: a changed scene or camera settles within a
+    few seconds); the correlation ratio likewise. Bins never measured follow the nearest
+    measured ones as z^2 (NoiseModel's extrapolation).
+    """
+
+    def __init__(self, memory: int = 30):
+        self.memory = memory
+        self._sum: dict[int, list[float]] = {}  # bin -> [sum sigma * w, sum w]
+        self._corr = [0.0, 0.0]
+        self.frames = 0
+
+    def update(self, depth: np.ndarray) -> None:
+        e = estimate_noise(depth)
+        self.frames += 1
+        decay = 1.0 - 1.0 / self.memory
+        for k in self._sum:
+            self._sum[k][0] *= decay
+            self._sum[k][1] *= decay
+        for z, sgm, c in zip(e.z, e.sigma, e.count):
+            k = int(round(z / BIN_M - 0.5))
+            acc = self._sum.setdefault(k, [0.0, 0.0])
+            acc[0] += sgm * c
+            acc[1] += c
+        self._corr[0] = self._corr[0] * decay + e.corr_ratio * e.corr_count
+        self._corr[1] = self._corr[1] * decay + e.corr_count
+
+    def model(self) -> NoiseModel:
+        ks = sorted(k for k, (_, w) in self._sum.items() if w >= MIN_PATCHES)
+        if not ks:
+            return NoiseModel(source='estimated')
+        z = np.array([(k + 0.5) * BIN_M for k in ks])
+        sg = np.array([self._sum[k][0] / self._sum[k][1] for k in ks])
+        corr = self._corr[0] / self._corr[1] if self._corr[1] > 0 else 1.0
+        return NoiseModel(tuple(float(v) for v in z), tuple(float(v) for v in sg),
+                          classify(sg, z, corr), 'estimated')
+
+
+def sensor_choices() -> tuple[str, ...]:
+    """Valid values of the `sensor` parameter."""
+    from smpl_depth_ros.synth.sensors import SENSORS
+    return ('auto', 'none', *sorted(SENSORS))
+
+
+def check_sensor(sensor: str) -> str | None:
+    """Why `sensor` is not a valid `sensor` parameter value, or None."""
+    if sensor in sensor_choices():
+        return None
+    return f'sensor must be one of {", ".join(sensor_choices())}; got {sensor!r}'
+
+
+def noise_model(sensor: str, K: np.ndarray | None = None) -> NoiseModel | None:
+    """The NoiseModel of a `sensor` parameter: a preset's, None for 'auto' (estimate
+    from the frames), the zero model for 'none'."""
+    if sensor == 'auto':
+        return None
+    if sensor == 'none':
+        return NoiseModel()
+    return preset_noise(sensor, K)
+
+
+# -- thresholds ---------------------------------------------------------------------
+
+def scaled_fit_config(fit, sigma: float):
+    """FitConfig with the noise-dependent thresholds widened for noise sigma (metres)
+    at the person's depth: the robust scale, the track-lost and flip residuals, the ICP
+    margin and the free-space margin."""
+    s = float(sigma)
+    if s <= 0:
+        return fit
+    return replace(fit, gm_sigma=max(fit.gm_sigma, s),
+                   gm_sigma_start=max(fit.gm_sigma_start, 2 * s),
+                   lost_residual_m=max(fit.lost_residual_m, 0.67 * fit.lost_residual_m + s),
+                   flip_residual_m=max(fit.flip_residual_m, 0.67 * fit.flip_residual_m + s),
+                   icp_margin_m=max(fit.icp_margin_m, 1.5 * s) if fit.icp_margin_m > 0
+                   else 0.0,
+                   free_space_margin=max(fit.free_space_margin, 3 * s))
+
+
+def scaled_reject_residual(base: float, sigma: float) -> float:
+    """The median residual above which a fit is no person, for noise sigma: the median
+    of |noise| (0.67 sigma) on top of two thirds of the noise-free default."""
+    return max(base, 0.67 * base + float(sigma))
+
+
+def scaled_spread(base: float, sigma: float) -> float:
+    """Per-vertex target coherence scale (fit.aggregate_by_vertex spread_m)."""
+    return max(base, 0.7 * float(sigma))

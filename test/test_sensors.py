@@ -1,0 +1,269 @@
+"""Depth-sensor noise models (synth.sensors), broad poses (synth.poses), the run-time
+noise estimate and the thresholds that scale with it (sensor_noise), the sweep tool."""
+import json
+
+import numpy as np
+import pytest
+
+from smpl_depth_ros import sensor_noise as sn
+from smpl_depth_ros.synth import dataset
+from smpl_depth_ros.synth.camera import CAMERAS
+from smpl_depth_ros.synth.poses import BROAD_TEMPLATES, PoseSampler
+from smpl_depth_ros.synth.sensors import SENSORS, get_sensor
+
+
+@pytest.fixture(scope='module')
+def body():
+    from smpl_depth_ros.body.anny_model import AnnyBody
+    return AnnyBody()
+
+
+def _plane(sensor, z, seed=0, strength=1.0):
+    H, W = sensor.camera.height, sensor.camera.width
+    d = np.full((H, W), z, np.float32)
+    return sensor.apply(d, np.ones_like(d), np.random.default_rng(seed), strength)
+
+
+@pytest.mark.parametrize('name', sorted(SENSORS))
+def test_noise_sigma_matches_the_model_at_2_and_4_m(name):
+    """Every preset's measured axial scatter on a fronto-parallel plane is its formula's
+    sigma(z) within 20 % at 2 m and at 4 m (or the range limit invalidates it)."""
+    s = SENSORS[name]
+    for z in (2.0, 4.0):
+        r = _plane(s, z)
+        v = r.depth > 0
+        if z > s.camera.max_range:
+            assert not v.any(), 'a time-of-flight mode returns nothing beyond its range'
+            continue
+        assert v.mean() > 0.9
+        meas = float(np.std(r.depth[v] - z))
+        assert meas == pytest.approx(float(s.sigma(z)), rel=0.2), (name, z)
+
+
+def test_stereo_error_grows_with_depth_squared_and_strength():
+    s = SENSORS['realsense_d435']
+    assert float(s.sigma(4.0)) == pytest.approx(4 * float(s.sigma(2.0)), rel=0.01)
+    assert float(s.sigma(3.0)) == pytest.approx(3.0 ** 2 * 0.08 / (424 * 0.05), rel=0.01)
+    lo, hi = (np.std(r.depth[r.depth > 0] - 3.0) for r in
+              (_plane(s, 3.0, strength=k) for k in (0.5, 2.0)))
+    assert hi / lo == pytest.approx(4.0, rel=0.2)
+
+
+def _autocorr(e, lag):
+    a, b = e[:, :-lag], e[:, lag:]
+    return float(np.mean(a * b) / np.mean(e * e))
+
+
+def test_stereo_noise_is_spatially_correlated_kinect_noise_is_not():
+    """Block matching makes wavy surfaces: the stereo error's autocorrelation at a lag of
+    one correlation length is about (1 - white share) exp(-1/4); Kinect v1's per-pixel
+    noise has none."""
+    s = SENSORS['realsense_d435']
+    p = s.params
+    r = _plane(s, 2.0)
+    e = np.where(r.depth > 0, r.depth - 2.0, 0.0).astype(np.float64)
+    ell = p.correlation_px
+    expect = (1 - p.white_share) * np.exp(-1 / 4)
+    assert _autocorr(e, int(ell)) == pytest.approx(expect, abs=0.08)
+    assert _autocorr(e, int(4 * ell)) < 0.1
+    r = _plane(SENSORS['kinect_v1'], 2.0)
+    k = np.where(r.depth > 0, r.depth - 2.0, 0.0).astype(np.float64)
+    assert abs(_autocorr(k - k.mean(), 1)) < 0.05
+
+
+def test_stereo_disparity_is_quantised_and_edges_lose_pixels():
+    s = SENSORS['oak_d']
+    H, W = s.camera.height, s.camera.width
+    d = np.full((H, W), 4.0, np.float32)
+    d[:, W // 2:] = 2.0  # a near surface on the right: occluded band on its left
+    r = s.apply(d, np.ones_like(d), np.random.default_rng(1))
+    fb = s.camera.fx * s.params.baseline_m
+    v = r.depth > 0
+    z = r.depth[v].astype(np.float64)
+    frac = (fb / z * s.params.subpixel_levels) % 1.0
+    # 1/8 px steps, then millimetre rounding of the depth: within 0.5 mm of a level
+    tol = 0.0005 * fb / z ** 2 * s.params.subpixel_levels + 1e-3
+    assert np.mean(np.minimum(frac, 1 - frac) < tol) > 0.99
+    # the second imager's occlusion: an invalid band left of the near surface
+    band = fb * (1 / 2.0 - 1 / 4.0)
+    left = ~v[:, W // 2 - int(band) + 2:W // 2 - 2]
+    assert left.mean() > 0.8
+
+
+def test_tof_flying_pixels_only_at_depth_edges():
+    s = SENSORS['azure_kinect_nfov']
+    H, W = s.camera.height, s.camera.width
+    d = np.full((H, W), 3.5, np.float32)
+    d[150:400, 200:420] = 1.5
+    r = s.apply(d, np.ones_like(d), np.random.default_rng(2))
+    between = (r.depth > 1.6) & (r.depth < 3.4)
+    assert between.sum() > 50
+    assert (r.source[between] == -1).all(), 'a flying pixel lies on no surface'
+    fly = (r.depth > 0) & (r.source == -1)  # those and the ones mixed near either side
+    rr, cc = np.nonzero(fly)
+    inside = (rr >= 150) & (rr < 400) & (cc >= 200) & (cc < 420)
+    dist = np.where(inside, np.minimum.reduce([rr - 150, 399 - rr, cc - 200, 419 - cc]),
+                    np.maximum(np.maximum(150 - rr, rr - 399), np.maximum(200 - cc, cc - 419)))
+    assert dist.max() <= 2
+
+
+def test_tof_multipath_pushes_concave_corners_away_and_hair_drops_out():
+    s = SENSORS['kinect_v2']
+    H, W = s.camera.height, s.camera.width
+    v, u = np.mgrid[0:H, 0:W]
+    corner = 3.0 - 0.004 * np.abs(u - W / 2)  # a vertical concave corner at the centre
+    d = corner.astype(np.float32)
+    dark = np.zeros((H, W), bool)
+    dark[:100, :100] = True
+    r = s.apply(d, np.ones_like(d), np.random.default_rng(3), dark=dark)
+    c = slice(W // 2 - 3, W // 2 + 3)
+    side = slice(20, 40)
+    err_c = np.nanmean(np.where(r.depth[:, c] > 0, r.depth[:, c] - d[:, c], np.nan))
+    err_s = np.nanmean(np.where(r.depth[:, side] > 0, r.depth[:, side] - d[:, side], np.nan))
+    assert err_c > err_s + 0.003
+    assert (r.depth[dark] == 0).mean() > 0.3 > (r.depth[~dark] == 0).mean()
+
+
+def test_presets_pair_cameras_and_resample(body):
+    for name, s in SENSORS.items():
+        assert s.camera is CAMERAS[name] and s.kind in ('structured_light', 'stereo', 'tof')
+    lo = get_sensor('realsense_d435', 424, 240)
+    assert (lo.camera.width, lo.camera.height) == (424, 240)
+    assert float(lo.sigma(2.0)) == pytest.approx(2 * float(SENSORS['realsense_d435'].sigma(2.0)),
+                                                 rel=0.01)
+    with pytest.raises(ValueError):
+        get_sensor('nope')
+
+
+def test_broad_poses_reach_beyond_the_templates(body):
+    """'broad' draws crouches, kneels, lying and arbitrary within-limit poses; 'templates'
+    keeps its random stream."""
+    broad = PoseSampler(body, mode='broad')
+    names = broad.names
+    rng = np.random.default_rng(0)
+    draws = [broad.sample_with_root(rng) for _ in range(400)]
+    poses = np.stack([p for p, _ in draws])
+    roots = np.stack([r for _, r in draws])
+    lim = broad.limits
+    assert (poses >= lim[..., 0] - 1e-9).all() and (poses <= lim[..., 1] + 1e-9).all()
+    knee = np.linalg.norm(poses[:, names.index('left_knee')], axis=1)
+    assert (knee > np.deg2rad(100)).mean() > 0.15  # deep knee flexion is common
+    assert (np.abs(roots) > np.deg2rad(60)).any(1).mean() > 0.02  # lying / all fours
+    assert 'lie_back' in BROAD_TEMPLATES and 'squat_deep' in BROAD_TEMPLATES
+    plain = PoseSampler(body)
+    a = plain.sample(np.random.default_rng(5), 3)
+    b = PoseSampler(body, mode='templates').sample(np.random.default_rng(5), 3)
+    np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError):
+        PoseSampler(body, mode='wild')
+
+
+def test_a_lying_body_is_placed_on_the_floor_in_view(body):
+    smp = PoseSampler(body, mode='broad')
+    cam = CAMERAS['kinect_v1'].scaled(320, 240)
+    rng = np.random.default_rng(11)
+    seen = 0
+    for _ in range(40):
+        fr = dataset.make_frame(body, smp, rng, cam, noise=False)
+        seen += (fr['labels'] > 0).sum() > 200
+    assert seen >= 36
+
+
+def _frames(body, name, n=3, seed=4, depth=(2.0, 3.5)):
+    from dataclasses import replace
+    s = SENSORS[name]
+    p = replace(dataset.SynthParams(sensor=s), depth_range=depth)
+    rng = np.random.default_rng(seed)
+    smp = PoseSampler(body)
+    return [dataset.make_frame(body, smp, rng, s.camera, params=p) for _ in range(n)]
+
+
+def test_auto_tells_stereo_from_kinect_and_measures_its_noise(body):
+    """sensor 'auto': the noise measured from ordinary frames (room + person) tells a
+    stereo camera from a Kinect v1 and time of flight from both, and is close to the
+    preset's sigma(z) (time of flight: below structured light's)."""
+    for name, kind in (('realsense_d435', 'stereo'), ('kinect_v1', 'structured_light'),
+                       ('azure_kinect_nfov', 'tof')):
+        auto = sn.AutoNoise()
+        for fr in _frames(body, name):
+            auto.update(fr['depth'])
+        m = auto.model()
+        assert m.kind == kind, name
+        ratio = float(m(2.5)) / float(SENSORS[name].sigma(2.5))
+        if kind == 'tof':  # a few mm: the body's curvature and multipath show too
+            assert float(m(2.5)) < float(sn.kinect_v1_sigma(2.5)), name
+        else:
+            assert 0.6 < ratio < 1.5, (name, ratio)
+
+
+def test_auto_on_the_real_kinect_frame():
+    from PIL import Image
+    d = np.asarray(Image.open('test/data/five_people_depth_mm.png')).astype(np.float64) / 1e3
+    e = sn.estimate_noise(d)
+    assert sn.classify(e.sigma, e.z, e.corr_ratio) == 'structured_light'
+    near = (e.z > 1.5) & (e.z < 3.5)
+    np.testing.assert_allclose(e.sigma[near], sn.kinect_v1_sigma(e.z[near]), rtol=0.3)
+
+
+def test_thresholds_keep_defaults_for_quiet_sensors_and_widen_for_noisy_ones():
+    from smpl_depth_ros.config import FitConfig
+    base = FitConfig()
+    assert sn.scaled_fit_config(base, 0.0) == base
+    assert sn.scaled_fit_config(base, 0.01) == base  # Kinect v1 at ~2.7 m
+    wide = sn.scaled_fit_config(base, 0.06)  # a D435 at 4 m
+    assert wide.gm_sigma == 0.06 and wide.free_space_margin == pytest.approx(0.18)
+    assert wide.icp_margin_m == pytest.approx(0.09)
+    assert sn.scaled_reject_residual(0.09, 0.0) == 0.09
+    assert sn.scaled_reject_residual(0.09, 0.06) == pytest.approx(0.1203)
+    m = sn.preset_noise('realsense_d435')
+    assert float(m(3.0)) == pytest.approx(float(SENSORS['realsense_d435'].sigma(3.0)), rel=0.02)
+    assert float(m(9.0)) == pytest.approx(float(SENSORS['realsense_d435'].sigma(9.0)), rel=0.05)
+    assert sn.noise_model('auto') is None and float(sn.noise_model('none')(3.0)) == 0.0
+    assert sn.check_sensor('oak_d') is None and 'sensor must be' in sn.check_sensor('x')
+
+
+def test_noisy_frames_keep_the_person_in_one_candidate(body):
+    """Person finding with the sensor's noise model: a D435 person at 3.5-4 m is one
+    candidate covering most of its pixels (the fixed Kinect thresholds cut it apart)."""
+    from smpl_depth_ros.net.preprocess import find_persons
+    frames = _frames(body, 'realsense_d435', n=4, seed=8, depth=(3.5, 4.0))
+    cover = {None: [], 'preset': []}
+    for fr in frames:
+        gt = fr['labels'] > 0
+        for key, noise in ((None, None), ('preset', sn.preset_noise('realsense_d435'))):
+            crops = find_persons(fr['depth'], fr['K'], 0.5, 6.0, 400, 3, noise=noise)
+            cover[key].append(max([(c.mask & gt).sum() / gt.sum() for c in crops] or [0]))
+    assert np.mean(cover['preset']) > 0.6
+    assert np.mean(cover['preset']) > np.mean(cover[None])
+
+
+def test_sweep_tool_writes_json_and_plot(tmp_path):
+    from smpl_depth_ros.tools import sweep
+    out, png = tmp_path / 's.json', tmp_path / 's.png'
+    rc = sweep.main(['--sensors', 'kinect_v1,azure_kinect_nfov', '--bins', '2.0', '4.0',
+                     '1.0', '--frames', '1', '--json', str(out), '--plot', str(png),
+                     '-p', 'fit.icp_rounds=0'])
+    assert rc == 0
+    res = json.loads(out.read_text())
+    rows = res['rows']
+    # azure NFOV ends at 3.86 m: its 3-4 m bin is cut to 3.0-3.56 m
+    assert [(r['sensor'], r['depth']) for r in rows] == [
+        ('kinect_v1', [2.0, 3.0]), ('kinect_v1', [3.0, 4.0]),
+        ('azure_kinect_nfov', [2.0, 3.0]), ('azure_kinect_nfov', [3.0, 3.56])]
+    for r in rows:
+        assert 0 <= r['reconstructed'] <= 1 and r['frames'] == 1
+        if r['reconstructed']:
+            assert 0 < r['pve_mm'] < 300 and 0 < r['surface_mm_median'] < r['pve_mm']
+    assert set(res['summary']) == {'kinect_v1', 'azure_kinect_nfov'}
+    assert res['command'].startswith('sweep ') and png.stat().st_size > 1000
+    assert sweep.main(['--sensors', 'nope']) == 2
+
+
+def test_surface_distance_is_zero_for_a_mesh_and_its_shift():
+    import trimesh
+    from smpl_depth_ros.evaluation import surface_distance
+    m = trimesh.creation.icosphere(subdivisions=3, radius=0.3)
+    med, mean = surface_distance(m.vertices, m.faces, m.vertices, m.faces, n=3000)
+    assert med < 0.01 and mean < 0.01
+    med, mean = surface_distance(m.vertices + [0, 0, 0.05], m.faces, m.vertices, m.faces)
+    assert 0.01 < med < 0.05
