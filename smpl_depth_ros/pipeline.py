@@ -185,8 +185,9 @@ class Reconstructor:
         d = validate_input(depth, K, cfg.max_image_pixels)
         K = np.asarray(K, np.float64)
         noise = self._noise_for(d, K)
+        excess = None if noise is None else noise.excess
         crops = find_persons(d, K, cfg.depth_min, cfg.depth_max, cfg.min_person_pixels,
-                             max_persons=max(cfg.max_persons, 1) + 2, noise=noise)
+                             max_persons=max(cfg.max_persons, 1) + 2, noise=excess)
         t1 = time.perf_counter()
         labels_full = np.zeros(d.shape, np.uint8)
         network_full = (np.zeros(d.shape, np.uint8) if cfg.segmentation == 'model'
@@ -206,7 +207,7 @@ class Reconstructor:
             tp = time.perf_counter()
             again = find_persons(d, K, cfg.depth_min, cfg.depth_max, cfg.min_person_pixels,
                                  max_persons=max(cfg.max_persons, 1) + 2, peel=True,
-                                 noise=noise)
+                                 noise=excess)
             timings['preprocess'] += (time.perf_counter() - tp) * 1e3
             if [int(c.mask.sum()) for c in again] != [int(c.mask.sum()) for c in crops]:
                 persons = self._persons(d, K, again, stamp_ns, timings, labels_full,
@@ -234,8 +235,8 @@ class Reconstructor:
         (see `process`); writes their labels into labels_full (as `segmentation` says)
         and the network's into network_full, and appends (median residual, limit) of
         every fit rejected as no person to `rejected`. `noise`: the sensor noise model;
-        each candidate's noise-dependent thresholds are widened for the noise at its
-        median depth (sensor_noise)."""
+        each candidate's noise-dependent thresholds are widened for the excess noise at
+        its median depth (sensor_noise)."""
         cfg = self.config
         persons = []
         split_done: set[int] = set()  # halves of split candidates are not split again
@@ -274,9 +275,9 @@ class Reconstructor:
             if fg.sum() < MIN_BODY_PIXELS or fg.sum() < 0.4 * max(int(x[i][1].sum()), 1) \
                     * self._blob_fraction(crop, x[i][1]):
                 continue
-            sigma = 0.0 if noise is None else float(noise(crop.median_depth))
-            fitter = self.fitter.for_noise(sigma)
-            reject = scaled_reject_residual(cfg.reject_residual_m, sigma)
+            excess = 0.0 if noise is None else float(noise.excess(crop.median_depth))
+            fitter = self.fitter.for_noise(excess)
+            reject = scaled_reject_residual(cfg.reject_residual_m, excess)
             tc = time.perf_counter()
             vids = self.net.lookup(lab[i], coords[i], fg)
             rr, cc, _ = crop.sample_indices(d.shape)

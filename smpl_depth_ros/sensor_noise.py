@@ -13,8 +13,10 @@ gives sigma(z), the expected axial noise (1 sigma, metres) at depth z, from one 
   0.5 m depth bin, averaged over frames (`AutoNoise`);
 * 'none': the fixed defaults (sigma = 0).
 
-`scaled_*` turn sigma into thresholds: each is max(default, k * sigma), so a quiet
-sensor keeps the defaults and only a noisier one widens them.
+The defaults were tuned on a Kinect v1, so what widens the thresholds is the *excess*
+noise, `NoiseModel.excess(z)` = max(0, sigma(z) - EXCESS_OVER x sigma_KinectV1(z)): a
+sensor as quiet as a Kinect v1 (or quieter: time of flight) keeps every default exactly,
+and a noisier one (stereo far away) adds k x excess to each threshold (`scaled_*`).
 """
 from __future__ import annotations
 
@@ -26,6 +28,7 @@ BIN_M = 0.5           # depth bins of the estimate
 PATCH = 8             # patch side (pixels of the decimated image)
 MIN_PATCHES = 6       # patches a bin needs to count (over the frames averaged) ...
 MIN_FRAME_PATCHES = 3  # ... and in one frame
+EXCESS_OVER = 1.25   # noise up to this multiple of a Kinect v1's leaves the defaults
 PATCH_QUANTILE = 0.3  # a bin's sigma: this quantile of its patches' scatter (curved and
                       # edge patches scatter more than the noise, never less)
 
@@ -63,6 +66,10 @@ class NoiseModel:
         out = np.where(hi, st[-1] * (z / zt[-1]) ** 2, out)
         lo = z < zt[0]
         return np.where(lo, st[0] * np.maximum(z / zt[0], 0.0) ** 2, out)
+
+    def excess(self, z) -> np.ndarray:
+        """Noise beyond what the defaults were tuned for (see the module doc), metres."""
+        return np.maximum(0.0, self(z) - EXCESS_OVER * kinect_v1_sigma(z))
 
     def as_dict(self) -> dict:
         return dict(kind=self.kind, source=self.source,
@@ -249,28 +256,27 @@ def noise_model(sensor: str, K: np.ndarray | None = None) -> NoiseModel | None:
 
 # -- thresholds ---------------------------------------------------------------------
 
-def scaled_fit_config(fit, sigma: float):
-    """FitConfig with the noise-dependent thresholds widened for noise sigma (metres)
-    at the person's depth: the robust scale, the track-lost and flip residuals, the ICP
-    margin and the free-space margin."""
-    s = float(sigma)
-    if s <= 0:
+def scaled_fit_config(fit, excess: float):
+    """FitConfig with the noise-dependent thresholds widened for an excess noise
+    (metres, `NoiseModel.excess` at the person's depth): the robust scale (+1x), its
+    cold-start value (+2x), the track-lost and flip residuals (+1x), the ICP margin
+    (+1.5x) and the free-space margin (+3x). Unchanged for excess 0."""
+    e = float(excess)
+    if e <= 0:
         return fit
-    return replace(fit, gm_sigma=max(fit.gm_sigma, s),
-                   gm_sigma_start=max(fit.gm_sigma_start, 2 * s),
-                   lost_residual_m=max(fit.lost_residual_m, 0.67 * fit.lost_residual_m + s),
-                   flip_residual_m=max(fit.flip_residual_m, 0.67 * fit.flip_residual_m + s),
-                   icp_margin_m=max(fit.icp_margin_m, 1.5 * s) if fit.icp_margin_m > 0
-                   else 0.0,
-                   free_space_margin=max(fit.free_space_margin, 3 * s))
+    return replace(fit, gm_sigma=fit.gm_sigma + e, gm_sigma_start=fit.gm_sigma_start + 2 * e,
+                   lost_residual_m=fit.lost_residual_m + e,
+                   flip_residual_m=fit.flip_residual_m + e,
+                   icp_margin_m=fit.icp_margin_m + 1.5 * e if fit.icp_margin_m > 0 else 0.0,
+                   free_space_margin=fit.free_space_margin + 3 * e)
 
 
-def scaled_reject_residual(base: float, sigma: float) -> float:
-    """The median residual above which a fit is no person, for noise sigma: the median
-    of |noise| (0.67 sigma) on top of two thirds of the noise-free default."""
-    return max(base, 0.67 * base + float(sigma))
+def scaled_reject_residual(base: float, excess: float) -> float:
+    """The median residual above which a fit is no person, widened by the excess noise
+    (the median |noise| is 0.67 sigma; the rest is room for the noisier fit)."""
+    return base + max(float(excess), 0.0)
 
 
-def scaled_spread(base: float, sigma: float) -> float:
+def scaled_spread(base: float, excess: float) -> float:
     """Per-vertex target coherence scale (fit.aggregate_by_vertex spread_m)."""
-    return max(base, 0.7 * float(sigma))
+    return base + 0.7 * max(float(excess), 0.0)

@@ -348,16 +348,16 @@ class Fitter:
         self.spread_m = SPREAD_M
         self._noisy: dict[int, 'Fitter'] = {}
 
-    def for_noise(self, sigma: float) -> 'Fitter':
-        """This fitter with its noise-dependent thresholds widened for an expected sensor
-        noise sigma (metres, sensor_noise.scaled_fit_config / scaled_spread); itself when
-        sigma leaves them at their defaults. Shares the rig, caches and random stream."""
+    def for_noise(self, excess: float) -> 'Fitter':
+        """This fitter with its noise-dependent thresholds widened for an excess sensor
+        noise (metres, sensor_noise.scaled_fit_config / scaled_spread); itself for 0.
+        Shares the rig, caches and random stream."""
         from smpl_depth_ros.sensor_noise import scaled_fit_config, scaled_spread
-        cfg = scaled_fit_config(self.cfg, sigma)
-        spread = scaled_spread(SPREAD_M, sigma)
+        cfg = scaled_fit_config(self.cfg, excess)
+        spread = scaled_spread(SPREAD_M, excess)
         if cfg == self.cfg and spread == self.spread_m:
             return self
-        key = int(round(float(sigma) * 1e4))  # 0.1 mm steps
+        key = int(round(float(excess) * 1e4))  # 0.1 mm steps
         if key not in self._noisy:
             f = copy.copy(self)
             f.cfg, f.spread_m, f._noisy = cfg, spread, {}

@@ -216,12 +216,12 @@ def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=2,
     `presample` random points, the best `finalists` on `sample` random points. The planes
     removed are appended to `planes` (when given) as (4,) arrays (n, offset), n . x =
     offset, unit n towards the camera (the side the scene is seen from). `noise`: an
-    optional sigma(z) (sensor_noise.NoiseModel): a point's inlier band is then
-    max(thresh, 2 sigma(its depth)).
+    optional excess noise e(z) (sensor_noise.NoiseModel.excess): a point's inlier band
+    is then thresh + 2 e(its depth).
     """
     keep = np.ones(len(points), bool)
     if noise is not None and len(points):
-        thresh = np.maximum(thresh, 2.0 * noise(points[:, 2]))
+        thresh = thresh + 2.0 * noise(points[:, 2])
     n_all = len(points)
     if n_all < 100:
         return keep
@@ -303,8 +303,8 @@ def _depth_edges(depth: np.ndarray, s: int, noise=None) -> np.ndarray:
     decimated pixel in its row or column (both when as near), so every jump on the way
     between two decimated 4-neighbours cuts them apart. With s <= 2 this is the full-image
     edge map (the pixels on both sides of a jump) sampled at the decimated pixels.
-    With a `noise` model sigma(z) the jump is at least 3 sigma(z) (a noisier sensor's
-    surfaces would otherwise fall apart into fragments).
+    With an excess noise e(z) (`noise`: sensor_noise.NoiseModel.excess) the jump grows by
+    3 e(z) (a noisier sensor's surfaces would otherwise fall apart into fragments).
     """
     def marks(lines):  # (n, L) full-image lines -> (n, ceil(L / s)) edges on them
         lines = np.nan_to_num(lines, nan=0.0)
@@ -313,7 +313,7 @@ def _depth_edges(depth: np.ndarray, s: int, noise=None) -> np.ndarray:
         jump = np.zeros((n, m * s), bool)  # [:, j]: between pixels j and j + 1
         thr = 0.06 * np.maximum(lines[:, 1:] / 3.0, 1.0) ** 2
         if noise is not None:
-            thr = np.maximum(thr, 3.0 * noise(np.maximum(lines[:, 1:], lines[:, :-1])))
+            thr = thr + 3.0 * noise(np.maximum(lines[:, 1:], lines[:, :-1]))
         jump[:, :length - 1] = np.abs(np.diff(lines, axis=1)) > thr
         jump = jump.reshape(n, m, s)  # [:, c, i]: between pixels c * s + i and c * s + i + 1
         edge = jump[:, :, :(s + 1) // 2].any(2)  # i <= (s - 1) / 2: nearer to pixel c
@@ -321,6 +321,23 @@ def _depth_edges(depth: np.ndarray, s: int, noise=None) -> np.ndarray:
         return edge
 
     return marks(depth[::s]) | marks(depth[:, ::s].T).T
+
+
+def fill_small_holes(depth: np.ndarray, radius: int = 2) -> np.ndarray:
+    """Invalid pixels inside the valid region's closing by a (2 radius + 1) square take
+    their nearest valid pixel's depth: the speckle-filter holes and dropouts of a stereo
+    camera (a few per cent of a body's pixels) would otherwise each make a depth edge and
+    cut thin limbs off in person finding. Gaps wider than 2 radius stay."""
+    valid = depth > 0
+    closed = ndimage.binary_closing(valid, structure=np.ones((2 * radius + 1,) * 2, bool),
+                                    border_value=1)
+    holes = closed & ~valid
+    if not holes.any():
+        return depth
+    idx = ndimage.distance_transform_edt(~valid, return_distances=False, return_indices=True)
+    out = depth.copy()
+    out[holes] = depth[idx[0][holes], idx[1][holes]]
+    return out
 
 
 def _label_medians(values: np.ndarray, labels: np.ndarray, sizes: np.ndarray) -> np.ndarray:
@@ -497,8 +514,10 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
         peel: peel planes off the blobs too big for a person even when other candidates
             were found (by default only when none was): the second look of a frame whose
             candidates all proved not to be persons (a box beside a person at a wall).
-        noise: optional expected sensor noise sigma(z) (sensor_noise.NoiseModel): the
-            depth-jump and plane-inlier thresholds widen to it (see those steps).
+        noise: optional excess sensor noise e(z) (sensor_noise.NoiseModel.excess): the
+            depth-jump and plane-inlier thresholds widen with it (see those steps), and
+            when it is above 0 at the frame's median depth, small holes are filled first
+            (`fill_small_holes`).
 
     Returns:
         Crops (with `mask`, and `exclude` where a neighbour is big enough), at most
@@ -506,7 +525,11 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
     """
     H, W = depth.shape
     s = max(1, round(W / DETECT_WIDTH))
-    d = np.nan_to_num(depth[::s, ::s], nan=0.0)  # pixel (r, c) is full-image (r * s, c * s)
+    depth = np.nan_to_num(depth, nan=0.0)
+    if noise is not None and float(noise(float(np.median(depth[depth > 0]))
+                                         if (depth > 0).any() else 0.0)) > 0:
+        depth = fill_small_holes(depth)  # a noisy (stereo) sensor's holes
+    d = depth[::s, ::s]  # pixel (r, c) is full-image (r * s, c * s)
     min_px = min_pixels / s ** 2
     valid = (d >= depth_min) & (d <= depth_max)
     r, c = np.nonzero(valid)
@@ -531,8 +554,8 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
         for k in rejected:
             rr, cc = np.nonzero(lab == k)
             z = float(np.median(d[rr, cc]))
-            thresh = max(0.03, 2 * (0.0012 + 0.0019 * (z - 0.4) ** 2),
-                         0.0 if noise is None else 2 * float(noise(z)))
+            thresh = max(0.03, 2 * (0.0012 + 0.0019 * (z - 0.4) ** 2)) + (
+                0.0 if noise is None else 2 * float(noise(z)))
             on_plane = ~_remove_planes(pixel_points(rr * s, cc * s, d[rr, cc], K), rng,
                                        max_planes=3, min_up=-1.0, thresh=thresh,
                                        planes=planes)
