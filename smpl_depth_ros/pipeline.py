@@ -160,6 +160,19 @@ class Reconstructor:
         self._track_mask = None
         self._shapes = None
 
+    def set_config(self, config: PipelineConfig) -> None:
+        """Change the configuration between frames (the node's run-time parameters; a
+        new device or body model needs a new Reconstructor). A changed `sensor` starts
+        its noise model afresh."""
+        if check_sensor(config.sensor):
+            raise ValueError(check_sensor(config.sensor))
+        old, self.config = self.config, config
+        if config.fit != old.fit:
+            self.fitter = Fitter(self.body, config.fit)
+        if config.sensor != old.sensor:
+            self._auto = AutoNoise() if config.sensor == 'auto' else None
+            self._preset = None
+
     def set_fit_config(self, fit_cfg) -> None:
         self.config = self.config.with_overrides(**{f: getattr(fit_cfg, f) for f in
                                                      fit_cfg.__dataclass_fields__})

@@ -457,3 +457,21 @@ def test_hidden_forearm_is_completed_not_left_straight(body):
         err[on] = np.linalg.norm(r.vertices - V, axis=1)[fore].mean()
         assert np.linalg.norm(r.vertices - V, axis=1)[~fore].mean() < 0.015
     assert err[False] > 0.15 and err[True] < 0.5 * err[False], err
+
+
+def test_shipped_pose_gaussian_is_the_committed_command_s_output(body, tmp_path):
+    """data/pose_prior_anny.npz is what `export_pose_prior` makes (deterministic), it is
+    the one the fitter loads, and it was learned from the broad poses, not only the
+    activity templates (deep knee bends are within its mean +- 2 sd)."""
+    from smpl_depth_ros.fit.pose_prior import PoseGaussian, shipped_path
+    from smpl_depth_ros.tools import export_pose_prior
+    out = tmp_path / 'p.npz'
+    assert export_pose_prior.main(['--backend', 'anny', '--out', str(out)]) == 0
+    with np.load(out) as a, np.load(shipped_path('anny')) as b:
+        for k in ('mean', 'cov', 'limits', 'joint_names'):
+            assert np.array_equal(a[k], b[k]), k
+    g = PoseGaussian.for_body(body)
+    assert np.array_equal(g.mean, PoseGaussian.load(str(out), body).mean)
+    names = list(body.joint_names[1:])
+    k = names.index('left_knee') * 3
+    assert g.mean[k] + 2 * np.sqrt(g.cov[k, k]) > np.radians(120)

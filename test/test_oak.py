@@ -727,11 +727,28 @@ def test_reconstruct_oak_hands_over_the_same_messages(rclpy_context, core, perso
                                                     for m in handed}
         err = np.linalg.norm(_mesh_vertices(mesh).mean(0) - person['vertices'].mean(0))
         assert err < 0.1, err
+        # The camera told the reconstructor which sensor it is.
+        assert rec.get_parameter('sensor').value == 'oak_d'
+        assert rec._config.sensor == 'oak_d'
     finally:
         assert rec.stop() and cam.stop()
         spinner.close()
         for n in (col.node, rec, cam):
             n.destroy_node()
+
+
+def test_sensor_preset_follows_the_camera_and_its_settings():
+    cfg = oak.OakConfig()
+    assert oak.sensor_preset(cfg, 'OAK-D 1844301') == 'oak_d'
+    assert oak.sensor_preset(cfg, 'OAK-D-PRO-W 1944301') == 'oak_d_pro'
+    assert oak.sensor_preset(oak.OakConfig(subpixel=False), 'OAK-D-PRO') == \
+        'oak_d_no_subpixel'
+    from smpl_depth_ros.synth.sensors import SENSORS
+    for name in ('oak_d', 'oak_d_pro', 'oak_d_no_subpixel'):
+        assert name in SENSORS
+    # whole-pixel disparity steps: a far larger error far away than 1/8 px subpixel
+    assert float(SENSORS['oak_d_no_subpixel'].sigma(4.0)) > \
+        2 * float(SENSORS['oak_d'].sigma(4.0))
 
 
 # -- real hardware ----------------------------------------------------------------------------

@@ -208,6 +208,15 @@ def build_pipeline(pipeline: dai.Pipeline, cfg: OakConfig) -> dai.MessageQueue:
 
 
 # -- calibration -----------------------------------------------------------------------
+def sensor_preset(cfg: OakConfig, description: str = '') -> str:
+    """The depth-noise preset (synth.sensors) of this camera and its settings, which
+    `reconstruct_oak` gives the reconstructor's `sensor` parameter: an OAK-D Pro (IR dot
+    projector) or an OAK-D; without subpixel disparity, integer disparity steps."""
+    if not cfg.subpixel:
+        return 'oak_d_no_subpixel'
+    return 'oak_d_pro' if 'PRO' in description.upper() else 'oak_d'
+
+
 class CalibrationError(RuntimeError):
     """The device calibration lacks what the published depth needs."""
 

@@ -245,6 +245,12 @@ class OakCameraNode(Node):
         self._throttle[key] = now
         return True
 
+    @property
+    def sensor_preset(self) -> str:
+        """The depth-noise preset of the open camera (`oak.sensor_preset`)."""
+        session = getattr(self._driver, 'session', None)
+        return oak.sensor_preset(self.cfg, getattr(session, 'description', ''))
+
     def _log_connected(self, session):
         cfg = self.cfg
         align = 'CAM_A (colour)' if cfg.align_to_color else 'rectified CAM_C'
@@ -384,7 +390,20 @@ def make_reconstruct_oak(session_factory: SessionFactory | None = None,
     rec.get_logger().info(f"fed directly by '{camera.get_fully_qualified_name()}' (the "
                           'published message objects, no serialisation); its own '
                           'subscriptions stay open to other publishers')
+    tell_sensor(camera, rec)
     return camera, rec
+
+
+def tell_sensor(camera: OakCameraNode, rec) -> None:
+    """Give the reconstructor the camera's depth-noise preset (its `sensor` parameter),
+    unless it was set to something other than 'auto'."""
+    if rec.get_parameter('sensor').value != 'auto':
+        return
+    name = camera.sensor_preset
+    result = rec.set_parameters([Parameter('sensor', Parameter.Type.STRING, name)])[0]
+    if result.successful:
+        rec.get_logger().info(f"sensor '{name}' (the OAK's depth noise; "
+                              "-p sensor:=auto to measure it from the frames instead)")
 
 
 def main_with_reconstructor(argv: list[str] | None = None) -> int:

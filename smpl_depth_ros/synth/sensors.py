@@ -407,6 +407,11 @@ SENSORS: dict[str, Sensor] = {
     # matching windows (7x7 census + aggregation) and more speckle without a projector.
     'oak_d': _st('oak_d', baseline_m=0.075, subpixel_sigma_px=0.1, subpixel_levels=8,
                  correlation_px=3.5, speckle_share=0.006, range_50_m=9.0),
+    # Subpixel disparity off: whole-pixel steps (the error is the step's, ~1/sqrt(12) px).
+    'oak_d_no_subpixel': Sensor('oak_d_no_subpixel', 'stereo', CAMERAS['oak_d'],
+                                StereoParams(baseline_m=0.075, subpixel_sigma_px=0.1,
+                                             subpixel_levels=1, correlation_px=3.5,
+                                             speckle_share=0.006, range_50_m=9.0)),
     'oak_d_pro': _st('oak_d_pro', baseline_m=0.075, subpixel_sigma_px=0.08,
                      subpixel_levels=8, correlation_px=3.0, range_50_m=10.0),
     'kinect_v2': _tf('kinect_v2', sigma_base_m=0.0015, sigma_rel=0.001),
