@@ -18,10 +18,12 @@ def body():
     return AnnyBody()
 
 
-def _plane(sensor, z, seed=0, strength=1.0):
+def _plane(sensor, z, seed=0, strength=1.0, slant=0.0):
+    """A fronto-parallel plane at z (slant: its depth ramps by +-slant metres across the
+    image, so that quantisation steps fall anywhere)."""
     H, W = sensor.camera.height, sensor.camera.width
-    d = np.full((H, W), z, np.float32)
-    return sensor.apply(d, np.ones_like(d), np.random.default_rng(seed), strength)
+    d = (np.full((H, W), z) + slant * np.linspace(-1, 1, W)[None]).astype(np.float32)
+    return sensor.apply(d, np.ones_like(d), np.random.default_rng(seed), strength), d
 
 
 @pytest.mark.parametrize('name', sorted(SENSORS))
@@ -30,13 +32,15 @@ def test_noise_sigma_matches_the_model_at_2_and_4_m(name):
     sigma(z) within 20 % at 2 m and at 4 m (or the range limit invalidates it)."""
     s = SENSORS[name]
     for z in (2.0, 4.0):
-        r = _plane(s, z)
+        # a stereo slant spans a few disparity steps (whole pixels without subpixel)
+        slant = z ** 2 / (s.camera.fx * s.params.baseline_m) if s.kind == 'stereo' else 0.05
+        r, d = _plane(s, z, slant=slant)
         v = r.depth > 0
         if z > s.camera.max_range:
             assert not v.any(), 'a time-of-flight mode returns nothing beyond its range'
             continue
         assert v.mean() > 0.9
-        meas = float(np.std(r.depth[v] - z))
+        meas = float(np.std(r.depth[v] - d[v]))
         assert meas == pytest.approx(float(s.sigma(z)), rel=0.2), (name, z)
 
 
@@ -44,7 +48,7 @@ def test_stereo_error_grows_with_depth_squared_and_strength():
     s = SENSORS['realsense_d435']
     assert float(s.sigma(4.0)) == pytest.approx(4 * float(s.sigma(2.0)), rel=0.01)
     assert float(s.sigma(3.0)) == pytest.approx(3.0 ** 2 * 0.08 / (424 * 0.05), rel=0.01)
-    lo, hi = (np.std(r.depth[r.depth > 0] - 3.0) for r in
+    lo, hi = (np.std(r.depth[r.depth > 0] - 3.0) for r, _ in
               (_plane(s, 3.0, strength=k) for k in (0.5, 2.0)))
     assert hi / lo == pytest.approx(4.0, rel=0.2)
 
@@ -60,13 +64,13 @@ def test_stereo_noise_is_spatially_correlated_kinect_noise_is_not():
     noise has none."""
     s = SENSORS['realsense_d435']
     p = s.params
-    r = _plane(s, 2.0)
+    r, _ = _plane(s, 2.0)
     e = np.where(r.depth > 0, r.depth - 2.0, 0.0).astype(np.float64)
     ell = p.correlation_px
     expect = (1 - p.white_share) * np.exp(-1 / 4)
     assert _autocorr(e, int(ell)) == pytest.approx(expect, abs=0.08)
     assert _autocorr(e, int(4 * ell)) < 0.1
-    r = _plane(SENSORS['kinect_v1'], 2.0)
+    r, _ = _plane(SENSORS['kinect_v1'], 2.0)
     k = np.where(r.depth > 0, r.depth - 2.0, 0.0).astype(np.float64)
     assert abs(_autocorr(k - k.mean(), 1)) < 0.05
 
