@@ -979,21 +979,31 @@ def _stamp(header) -> int:
     return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
 
 
-def _prepare_output_dir(out: Path, inputs: Path, overwrite: bool) -> None:
-    products = ('bag', 'meshes', 'results.npz', 'summary.json')
+def _prepare_output_dir(out: Path, inputs: Path, overwrite: bool, export_meshes: bool = False,
+                        log=None) -> None:
+    """Check OUT and, with `overwrite`, remove the products this run writes (a symlink
+    among them is unlinked, its target left alone); an earlier run's meshes/ stays when
+    this run exports none (and is named in the log)."""
+    products = ('bag', 'results.npz', 'summary.json') + (('meshes',) if export_meshes else ())
     out_abs, in_abs = out.resolve(), inputs.resolve()
     if out_abs == in_abs or in_abs.is_relative_to(out_abs) or out_abs.is_relative_to(in_abs):
         raise ProcessBagError(f'output directory {out} overlaps the input bag {inputs}')
     if out.exists() and not out.is_dir():
         raise ProcessBagError(f'output path {out} exists and is not a directory')
     if out.exists():
-        present = [p for p in products if (out / p).exists()]
+        present = [p for p in products if (out / p).exists() or (out / p).is_symlink()]
         if present and not overwrite:
             raise ProcessBagError(f'output directory {out} already holds '
                                   f'{", ".join(present)}; pass --overwrite to replace them')
         for p in present:  # only our own products are removed
             q = out / p
-            shutil.rmtree(q) if q.is_dir() else q.unlink()
+            if q.is_symlink() or not q.is_dir():
+                q.unlink()
+            else:
+                shutil.rmtree(q)
+        if not export_meshes and (out / 'meshes').exists() and log is not None:
+            log(f'{out / "meshes"} is left as it is (from an earlier run: this run exports '
+                'no meshes)')
     out.mkdir(parents=True, exist_ok=True)
 
 
@@ -1055,7 +1065,7 @@ def process_bag(bag: str | Path, out_dir: str | Path, *, config: PipelineConfig 
         if clash:
             raise ProcessBagError(f'the bag already has output topic(s) {", ".join(clash)} '
                                   '(an output bag?); pass --output-ns to write elsewhere')
-        _prepare_output_dir(out_dir, bag, overwrite)
+        _prepare_output_dir(out_dir, bag, overwrite, bool(export_meshes), log)
         mesh_dir = out_dir / 'meshes'
         if export_meshes:
             mesh_dir.mkdir()
@@ -1475,8 +1485,8 @@ def _run_cli(args) -> int:
             args.bag, args.out, config=config, options=options, depth_topic=args.depth_topic,
             info_topic=args.info_topic, storage=args.storage, compress=args.compress,
             export_meshes=args.export_meshes, workers=args.workers,
-            chunk_size=args.chunk_size, overwrite=args.overwrite, progress=not args.quiet,
-            log=log)
+            chunk_size=args.chunk_size, overwrite=args.overwrite, output_ns=args.output_ns,
+            progress=not args.quiet, log=log)
     except (ProcessBagError, BagReadError) as e:
         print(f'{PROG}: error: {e}', file=sys.stderr)
         return EXIT_USAGE

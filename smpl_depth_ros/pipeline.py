@@ -25,6 +25,9 @@ from smpl_depth_ros.sensor_noise import (AutoNoise, NoiseModel, check_sensor, no
                                          scaled_reject_residual)
 from smpl_depth_ros.types import FrameResult, InputError, PersonResult
 
+MAX_FOV_DEG = 170.0  # intrinsics implying a wider field of view are rejected ...
+MAX_FOCAL_PER_PIXEL = 1e4  # ... and so are focal lengths above this many image sides
+MIN_FOV_DEG = round(float(np.degrees(2 * np.arctan(0.5 / MAX_FOCAL_PER_PIXEL))), 4)
 MIN_BODY_PIXELS = 60  # network-foreground crop pixels needed to attempt a fit
 PLANE_M = 0.02  # 'model' labels: pixels this near a scene plane (the floor under a foot)
                 # are not taken into the person by the margin (val_s2 mIoU 0.847 -> 0.856)
@@ -66,6 +69,22 @@ def validate_input(depth: np.ndarray, K: np.ndarray, max_pixels: int) -> np.ndar
     if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
         raise InputError('bad_intrinsics', f'camera matrix K is unusable (fx, fy must be > 0): '
                          f'{K.reshape(-1).tolist() if K.size == 9 else K.shape}')
+    if not np.allclose(K[2], (0.0, 0.0, 1.0), atol=1e-6):
+        raise InputError('bad_intrinsics', f'camera matrix K has last row {K[2].tolist()}, '
+                         'expected [0, 0, 1]')
+    side = max(depth.shape)
+    lo, hi = side / (2 * np.tan(np.radians(MAX_FOV_DEG / 2))), side * MAX_FOCAL_PER_PIXEL
+    for name, f in (('fx', K[0, 0]), ('fy', K[1, 1])):
+        if not lo <= f <= hi:
+            fov = np.degrees(2 * np.arctan(side / (2 * f)))
+            raise InputError('bad_intrinsics', f'camera matrix {name}={f:g} px gives a '
+                             f'{depth.shape[1]}x{depth.shape[0]} image a field of view of '
+                             f'{fov:.3g} deg (a depth camera: {MIN_FOV_DEG}-{MAX_FOV_DEG} deg, '
+                             f'{name} in [{lo:.3g}, {hi:.3g}])')
+    for name, c, n in (('cx', K[0, 2], depth.shape[1]), ('cy', K[1, 2], depth.shape[0])):
+        if abs(c - n / 2) > 5 * n:
+            raise InputError('bad_intrinsics', f'camera matrix {name}={c:g} lies far outside '
+                             f'the {n}-pixel image')
     d = np.nan_to_num(depth.astype(np.float32, copy=False), nan=0.0, posinf=0.0, neginf=0.0)
     if not np.any(d > 0):
         raise InputError('no_valid_depth', 'depth image has no valid pixel (all zero/NaN)')

@@ -138,6 +138,31 @@ def test_size_errors(msgs):
         A.image_to_depth(m, max_pixels=100 * 119)
     assert e.value.reason == 'too_large' and '120x100' in str(e.value)
     assert A.image_to_depth(m, max_pixels=100 * 120).shape == (100, 120)
+    # Padded rows: the last row needs no padding, and the message says what is needed.
+    d = _depth(3, 4)
+    m = A.depth_to_image_msg(d, None, '16UC1', msgs)
+    raw = np.asarray(m.data, np.uint8).reshape(3, 8)
+    m.step = 12
+    m.data = np.concatenate([raw[0], [0] * 4, raw[1], [0] * 4, raw[2]]).astype(np.uint8)
+    np.testing.assert_allclose(A.image_to_depth(m), A.image_to_depth(
+        A.depth_to_image_msg(d, None, '16UC1', msgs)))
+    m.data = m.data[:-1]
+    with pytest.raises(InputError, match='needs at least 32 bytes') as e:
+        A.image_to_depth(m)
+    assert 'got 31' in str(e.value)
+
+
+def test_strided_array_as_image_data(msgs):
+    """A sliced (non-contiguous) numpy array as Image.data reads like its copy."""
+    d = _depth(6, 10)
+    m = A.depth_to_image_msg(d, None, '16UC1', msgs)
+    raw = np.asarray(m.data, np.uint8)
+    spread = np.zeros(raw.size * 2, np.uint8)
+    spread[::2] = raw
+    m.data = spread[::2]  # rosbags messages keep it as it is; rclpy copies it
+    assert not isinstance(m.data, np.ndarray) or not m.data.flags['C_CONTIGUOUS']
+    np.testing.assert_array_equal(A.image_to_depth(m), A.image_to_depth(
+        A.depth_to_image_msg(d, None, '16UC1', msgs)))
 
 
 # -- camera info -----------------------------------------------------------------------
@@ -163,6 +188,14 @@ def test_camera_info_bad_K(msgs):
     with pytest.raises(InputError) as e:
         A.camera_info_to_K(A.camera_info_msg(K, (6, 6), None, msgs))
     assert e.value.reason == 'bad_intrinsics'
+    # A last row other than [0, 0, 1] (negated, tiny, infinite): rejected, and the message
+    # shows the values as they were given, not rescaled ones.
+    for k22 in (-1.0, 1e-12, np.inf, 2.0):
+        K = np.array([[525.0, 0, 320], [0, 525, 240], [0, 0, k22]])
+        with pytest.raises(InputError) as e:
+            A.camera_info_to_K(A.camera_info_msg(K, (640, 480), None, msgs))
+        assert e.value.reason == 'bad_intrinsics'
+        assert '525.0' in str(e.value) and repr(float(k22)).replace('inf', 'inf') in str(e.value)
 
 
 # -- segmentation ----------------------------------------------------------------------

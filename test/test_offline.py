@@ -349,6 +349,36 @@ def test_existing_output_and_late_camera_info(core, seq_msgs, tmp_path, capsys, 
     assert all('by the end of the bag' in str(m) for m in res['message'])
 
 
+def test_output_ns_reaches_the_run_and_overwrite_spares_links_and_meshes(cli_run, core,
+                                                                         tmp_path, capsys):
+    """--output-ns is what the 'already has output topics' error advises, and it works;
+    --overwrite unlinks a symlinked OUT/bag without touching its target, and leaves an
+    earlier run's meshes/ when this run exports none (saying so)."""
+    out0, _ = cli_run
+    again = tmp_path / 'again'
+    assert main([str(out0 / 'bag'), '--out', str(again), '--device', 'cpu', '--quiet']) == 1
+    assert '--output-ns' in capsys.readouterr().err
+    assert main([str(out0 / 'bag'), '--out', str(again), '--device', 'cpu', '--quiet',
+                 '--output-ns', '/second']) == 0
+    topics = {m[0] for m in read_messages(again / 'bag')}
+    assert '/second/mesh' in topics and '/reconstructor/mesh' in topics
+    out = tmp_path / 'out'
+    out.mkdir()
+    target = tmp_path / 'elsewhere'
+    target.mkdir()
+    (target / 'keep.txt').write_text('mine')
+    (out / 'bag').symlink_to(target, target_is_directory=True)
+    (out / 'meshes').mkdir()
+    (out / 'meshes' / 'old.ply').write_text('x')
+    seen = []
+    summary = process_bag(out0 / 'bag', out, overwrite=True, reconstructor=core,
+                          output_ns='/third', progress=False, log=seen.append)
+    assert summary['processed'] == FRAMES
+    assert (target / 'keep.txt').read_text() == 'mine' and not (out / 'bag').is_symlink()
+    assert (out / 'meshes' / 'old.ply').exists()
+    assert any('meshes' in m and 'left as it is' in m for m in seen), seen
+
+
 def test_workers_keep_input_order(seq, tmp_path):
     """--workers 2 on chunks of 2 frames: results and outputs in input order."""
     bag, gt = seq

@@ -123,6 +123,30 @@ def test_bad_input_raises_clear_errors(rec, make, reason):
     assert rec.process(f['depth'], f['K']).persons
 
 
+@pytest.mark.parametrize('fx', [1e-9, 1e-4, 0.1, 0.2, 20.0, 1e9])
+def test_implausible_focal_lengths_are_bad_intrinsics_not_memory(rec, fx):
+    """A focal length no depth camera has (a field of view beyond 170 degrees, or a
+    pinhole of a few hundredths of a degree) is rejected at once as bad intrinsics; it
+    once made person finding ask for GiB to PiB of memory."""
+    import time
+    f = _frame(rec, 3, background=False)
+    K = f['K'].copy()
+    K[0, 0] = K[1, 1] = fx
+    t0 = time.perf_counter()
+    with pytest.raises(InputError, match='field of view') as e:
+        rec.process(f['depth'], K)
+    assert e.value.reason == 'bad_intrinsics' and time.perf_counter() - t0 < 0.5
+    K = f['K'].copy()
+    K[2, 2] = 2.0
+    with pytest.raises(InputError, match=r'last row \[0.0, 0.0, 2.0\]'):
+        rec.process(f['depth'], K)
+    K = f['K'].copy()
+    K[0, 2] = 1e7
+    with pytest.raises(InputError, match='cx=1e\+07'):
+        rec.process(f['depth'], K)
+    assert rec.process(f['depth'], f['K']).persons
+
+
 def test_real_kinect_frame_several_people(rec):
     """The one real frame (five people, two touching): every separated, fully visible
     person gets a fit whose observed points lie within a median 25 mm of the surface."""

@@ -211,9 +211,9 @@ def _duration(seconds: float, f: MsgFactory):
 
 # -- images ----------------------------------------------------------------------------
 def _u8_buffer(data) -> np.ndarray:
-    if isinstance(data, np.ndarray):
-        return data.reshape(-1).view(np.uint8) if data.dtype.itemsize == 1 else \
-            np.frombuffer(data.tobytes(), np.uint8)
+    if isinstance(data, np.ndarray):  # any layout: a user's sliced array is strided
+        return np.ascontiguousarray(data).reshape(-1).view(np.uint8) \
+            if data.dtype.itemsize == 1 else np.frombuffer(data.tobytes(), np.uint8)
     try:
         return np.frombuffer(data, dtype=np.uint8)
     except TypeError:
@@ -253,7 +253,8 @@ def image_to_depth(msg, max_pixels: int | None = None) -> np.ndarray:
     need = step * (h - 1) + w * bpp
     if buf.size < need:
         raise InputError('size_mismatch', f'depth image {w}x{h} {enc} step {step} needs '
-                         f'{step * h} bytes of data, got {buf.size}')
+                         f'at least {need} bytes of data ({h - 1} rows of {step} and a last '
+                         f'row of {w * bpp}), got {buf.size}')
     dt = np.dtype(base).newbyteorder('>' if msg.is_bigendian else '<')
     view = np.ndarray(shape=(h, w), dtype=dt, buffer=buf, strides=(step, bpp))
     depth = view.astype(np.float32)
@@ -361,7 +362,8 @@ def camera_info_to_K(msg) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
 
     Raises:
         InputError: 'bad_intrinsics' when K is all zeros (an uncalibrated camera),
-            non-finite, or has non-positive focal lengths.
+            non-finite, has non-positive focal lengths or a last row other than
+            [0, 0, 1]; the message shows the values as given.
     """
     k = getattr(msg, 'k', None)
     if k is None:
@@ -373,10 +375,10 @@ def camera_info_to_K(msg) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
     if not np.any(K):
         raise InputError('bad_intrinsics', 'camera_info K is all zeros (uncalibrated '
                          'camera?): cannot back-project depth')
-    if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] == 0:
-        raise InputError('bad_intrinsics', f'camera_info K is invalid: fx={K[0, 0]:g} '
-                         f'fy={K[1, 1]:g} K[2,2]={K[2, 2]:g}')
-    K = K / K[2, 2]
+    if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 or \
+            not np.allclose(K[2], (0.0, 0.0, 1.0), atol=1e-6):
+        raise InputError('bad_intrinsics', 'camera_info K is invalid (finite, fx, fy > 0 and '
+                         f'a last row [0, 0, 1] needed): {K.reshape(-1).tolist()}')
     d = getattr(msg, 'd', None)
     if d is None:
         d = getattr(msg, 'D', ())
