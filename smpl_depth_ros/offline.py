@@ -95,6 +95,10 @@ class ProcessBagError(RuntimeError):
     """An unusable input or option (exit code 1); the message says what to do."""
 
 
+class InterruptedBeforeStart(RuntimeError):
+    """Ctrl-C / SIGTERM before the first frame: nothing processed, nothing written."""
+
+
 class BagReadError(RuntimeError):
     """The bag is damaged: `path` is the storage file, `position` where reading stopped."""
 
@@ -1065,6 +1069,7 @@ def process_bag(bag: str | Path, out_dir: str | Path, *, config: PipelineConfig 
         if clash:
             raise ProcessBagError(f'the bag already has output topic(s) {", ".join(clash)} '
                                   '(an output bag?); pass --output-ns to write elsewhere')
+        created = not out_dir.exists()
         _prepare_output_dir(out_dir, bag, overwrite, bool(export_meshes), log)
         mesh_dir = out_dir / 'meshes'
         if export_meshes:
@@ -1077,8 +1082,17 @@ def process_bag(bag: str | Path, out_dir: str | Path, *, config: PipelineConfig 
             f'({workers} worker{"s" if workers > 1 else ""})')
 
         t_load = time.perf_counter()
-        runner = (_InlineRunner(config, opts, reconstructor) if workers == 1 else
-                  _PoolRunner(config, opts, workers, chunk_size))
+        try:
+            runner = (_InlineRunner(config, opts, reconstructor) if workers == 1 else
+                      _PoolRunner(config, opts, workers, chunk_size))
+        except KeyboardInterrupt:
+            # Ctrl-C (or SIGTERM) while the model loads: nothing was processed; leave no
+            # empty output folder behind.
+            for d in ((mesh_dir,) if export_meshes else ()) + ((out_dir,) if created else ()):
+                if d.is_dir() and not any(d.iterdir()):
+                    d.rmdir()
+            raise InterruptedBeforeStart('interrupted while loading the model: no frame '
+                                         'was processed and nothing was written') from None
         load_s = time.perf_counter() - t_load
         try:
             run = _BagRun(src, out_dir / 'bag', storage, compress, runner, config,
@@ -1490,6 +1504,12 @@ def _run_cli(args) -> int:
     except (ProcessBagError, BagReadError) as e:
         print(f'{PROG}: error: {e}', file=sys.stderr)
         return EXIT_USAGE
+    except InterruptedBeforeStart as e:
+        print(f'{PROG}: {e}', file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except KeyboardInterrupt:  # before the bag was opened
+        print(f'{PROG}: interrupted before any frame was processed', file=sys.stderr)
+        return EXIT_INTERRUPTED
     except (RuntimeError, ValueError, FileNotFoundError) as e:  # model/device problems
         print(f'{PROG}: error: {type(e).__name__}: {e}', file=sys.stderr)
         return EXIT_USAGE

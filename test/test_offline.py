@@ -488,3 +488,24 @@ def test_progress_lines_without_a_terminal():
     p.close()
     assert len(lines) == 3 and 'ETA' in lines[-1] and '3/10 frames' in lines[-1]
     assert 'frames/s' in lines[-1]
+
+
+def test_ctrl_c_while_the_model_loads_leaves_nothing(tmp_path):
+    """SIGINT during model loading: one line, exit 130, no traceback, no empty output
+    folder (the run had written nothing)."""
+    import signal
+    import subprocess
+    import sys
+    bag = REPO / 'smpl_depth_ros' / 'data' / 'sample_bag'
+    out = tmp_path / 'out'
+    proc = subprocess.Popen([sys.executable, '-m', 'smpl_depth_ros.offline', str(bag),
+                             '--out', str(out), '--device', 'cpu'],
+                            stderr=subprocess.PIPE, text=True, cwd=str(REPO))
+    for line in proc.stderr:
+        if 'loading the model' in line:
+            break
+    proc.send_signal(signal.SIGINT)
+    err = proc.stderr.read()
+    assert proc.wait(60) == offline.EXIT_INTERRUPTED, err
+    assert 'Traceback' not in err and 'interrupted while loading the model' in err, err
+    assert not out.exists()
