@@ -34,3 +34,66 @@ def test_lib_executable_runs_like_ros2_run():
     out = subprocess.run([sys.executable, exe, '--help'], capture_output=True, text=True,
                          timeout=120)
     assert out.returncode == 0 and '--frames' in out.stdout
+
+
+# -- package.xml: real rosdep keys, one for every import ---------------------------------
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROSDEP = os.path.join(os.path.dirname(REPO), 'shared', 'data', 'rosdep')
+# Imported module -> its rosdep key (ROS packages are their own key).
+MODULE_KEYS = {'numpy': 'python3-numpy', 'scipy': 'python3-scipy', 'yaml': 'python3-yaml',
+               'PIL': 'python3-pil', 'tqdm': 'python3-tqdm', 'torch': 'python3-torch',
+               'trimesh': 'python3-trimesh-pip', 'rosbags': 'python3-rosbags-pip',
+               'depthai': 'python3-depthai-pip'}
+NO_KEY = {'anny', 'safetensors', 'roma', 'embreex', 'threadpoolctl'}  # requirements-jazzy
+OPTIONAL = {'compression', 'backports', 'lz4', 'pytest'}  # guarded imports / tests only
+ROS_MODULES = {'rclpy', 'rcl_interfaces', 'rosgraph_msgs', 'rosidl_runtime_py',
+               'sensor_msgs', 'visualization_msgs', 'diagnostic_msgs', 'ament_index_python'}
+# Message packages used by type name only ('geometry_msgs/msg/Point').
+BY_NAME = {'std_msgs', 'geometry_msgs', 'builtin_interfaces'}
+
+
+def _package_xml_deps() -> dict[str, set[str]]:
+    import xml.etree.ElementTree as ET
+    root = ET.parse(os.path.join(REPO, 'package.xml')).getroot()
+    out: dict[str, set[str]] = {}
+    for el in root:
+        if el.tag.endswith('depend'):
+            out.setdefault(el.tag, set()).add(el.text.strip())
+    return out
+
+
+def _third_party_imports() -> set[str]:
+    import ast
+    mods = set()
+    for dirpath, _, files in os.walk(os.path.join(REPO, 'smpl_depth_ros')):
+        for f in files:
+            if f.endswith('.py'):
+                tree = ast.parse(open(os.path.join(dirpath, f)).read())
+                for n in ast.walk(tree):
+                    if isinstance(n, ast.Import):
+                        mods |= {a.name.split('.')[0] for a in n.names}
+                    elif isinstance(n, ast.ImportFrom) and n.level == 0 and n.module:
+                        mods.add(n.module.split('.')[0])
+    return {m for m in mods if m not in sys.stdlib_module_names and m != 'smpl_depth_ros'}
+
+
+def test_package_xml_declares_every_import_with_a_real_rosdep_key():
+    deps = _package_xml_deps()
+    run = deps.get('exec_depend', set())
+    mods = _third_party_imports()
+    unknown = mods - set(MODULE_KEYS) - NO_KEY - OPTIONAL - ROS_MODULES
+    assert not unknown, f'imports without a mapping to a rosdep key: {unknown}'
+    missing = {MODULE_KEYS.get(m, m) for m in mods - NO_KEY - OPTIONAL} - run
+    assert not missing, f'package.xml lacks exec_depend {missing}'
+    assert BY_NAME <= run
+    with open(os.path.join(REPO, 'requirements-jazzy.txt')) as f:
+        pinned = {line.split('==')[0].strip() for line in f
+                  if line.strip() and not line.startswith('#')}
+    assert NO_KEY <= pinned, NO_KEY - pinned
+    assert 'python3-pytest' in deps.get('test_depend', set())
+    if not os.path.isdir(ROSDEP):
+        pytest.skip(f'no offline rosdep key list at {ROSDEP}')
+    keys = set(open(os.path.join(ROSDEP, 'system_keys.txt')).read().split())
+    keys |= set(open(os.path.join(ROSDEP, 'jazzy_packages.txt')).read().split())
+    bad = {k for ks in deps.values() for k in ks} - keys
+    assert not bad, f'not rosdep keys: {bad}'
