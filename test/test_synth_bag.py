@@ -142,3 +142,25 @@ def test_bytes_round_trip_padding_and_endianness():
     np.testing.assert_array_equal(back, np.nan_to_num(d, nan=0.0))
     with pytest.raises(ValueError):
         bagio.bytes_to_depth(data[:-1], 2, 2, '32FC1')
+
+
+def test_sensor_preset_bags(tmp_path, capsys):
+    """--sensor takes the preset's camera and noise model; --poses broad and
+    --depth-range reach the frames; both are recorded in the ground truth."""
+    out = tmp_path / 'd435'
+    assert synth_bag.main(['--out', str(out), '--frames', '2', '--seed', '3', '--sensor',
+                           'realsense_d435', '--width', '424', '--height', '240',
+                           '--poses', 'broad', '--depth-range', '3.0', '3.5',
+                           '--strength', '1.5']) == 0
+    info = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert info['sensor'] == 'realsense_d435' and info['size'] == [424, 240]
+    gt = np.load(synth_bag.gt_path(str(out)))
+    assert str(gt['sensor']) == 'realsense_d435' and str(gt['poses']) == 'broad'
+    assert float(gt['strength']) == 1.5
+    root = gt['joints'][:, 0, 2]
+    assert ((root > 2.95) & (root < 3.55)).all(), root
+    msgs = _read(out)
+    assert msgs[bagio.INFO_TOPIC][0][1].k[0] == pytest.approx(212.0)
+    # a depth range the camera cannot see is refused, not silently clipped
+    assert synth_bag.main(['--out', str(tmp_path / 'az'), '--sensor', 'azure_kinect_nfov',
+                           '--depth-range', '4.5', '5.0']) == 2
