@@ -271,6 +271,7 @@ class PoseSampler:
         return self._head(rng, pose)
 
     def _head(self, rng, pose):
+        """The optional head turn (head_turn_deg) added, then the joint limits."""
         if self.head_turn > 0:
             yaw = rng.uniform(-self.head_turn, self.head_turn)
             for j in ('neck', 'head'):
@@ -288,14 +289,7 @@ class PoseSampler:
         amp = rng.uniform(0.3, 1.15)
         pose = self.template(t, amp, mirror=bool(rng.random() < 0.5))
         pose = pose + rng.normal(0, self.noise, pose.shape)
-        if self.head_turn > 0:
-            yaw = rng.uniform(-self.head_turn, self.head_turn)
-            for j in ('neck', 'head'):
-                if j in self.names:
-                    pose[self.names.index(j), 1] += yaw
-            if 'head' in self.names:
-                pose[self.names.index('head'), 0] += rng.uniform(-0.5, 0.5) * self.head_turn
-        return self.clip(pose)
+        return self._head(rng, pose)
 
     def sample(self, rng: np.random.Generator, n: int = 1) -> np.ndarray:
         """(n, P, 3) model-frame axis-angle poses."""

@@ -257,14 +257,17 @@ def _window_extreme(z: np.ndarray, valid: np.ndarray, radius: int, largest: bool
     return (-best if largest else best), src
 
 
-def _stereo(depth, normals_cos, rng, p: StereoParams, strength, fx, pixel_size,
-            camera: Camera) -> sl.NoiseResult:
+def _start(depth, strength):
+    """(H, W, strength, clean depth float64, valid mask, source map) of a noise model."""
     H, W = depth.shape
-    s = float(strength)
     z0 = np.asarray(depth, np.float64)
     valid = z0 > 0
-    idx = np.arange(H * W).reshape(H, W)
-    source = np.where(valid, idx, -1)
+    return H, W, float(strength), z0, valid, np.where(valid, np.arange(H * W).reshape(H, W), -1)
+
+
+def _stereo(depth, normals_cos, rng, p: StereoParams, strength, fx, pixel_size,
+            camera: Camera) -> sl.NoiseResult:
+    H, W, s, z0, valid, source = _start(depth, strength)
     z = z0.copy()
     px = 1.0 / pixel_size  # image pixels per sensor pixel
 
@@ -327,12 +330,7 @@ def _stereo(depth, normals_cos, rng, p: StereoParams, strength, fx, pixel_size,
 
 def _tof(depth, normals_cos, rng, p: TofParams, strength, pixel_size, camera: Camera,
          dark) -> sl.NoiseResult:
-    H, W = depth.shape
-    s = float(strength)
-    z0 = np.asarray(depth, np.float64)
-    valid = z0 > 0
-    idx = np.arange(H * W).reshape(H, W)
-    source = np.where(valid, idx, -1)
+    H, W, s, z0, valid, source = _start(depth, strength)
     px = 1.0 / pixel_size
     cos = np.clip(np.asarray(normals_cos, np.float64), 1e-3, 1.0)
     theta = np.arccos(cos)
