@@ -142,7 +142,7 @@ def test_implausible_focal_lengths_are_bad_intrinsics_not_memory(rec, fx):
         rec.process(f['depth'], K)
     K = f['K'].copy()
     K[0, 2] = 1e7
-    with pytest.raises(InputError, match='cx=1e\+07'):
+    with pytest.raises(InputError, match=r'cx=1e\+07'):
         rec.process(f['depth'], K)
     assert rec.process(f['depth'], f['K']).persons
 
