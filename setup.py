@@ -26,25 +26,10 @@ EXECUTABLES = {
     'sweep': 'smpl_depth_ros.tools.sweep:main',
 }
 
-WRAPPER_DIR = os.path.join('build', 'lib_wrappers')
-
-
-def _write_wrappers():
-    """Write tiny `python -m`-style launchers installed under lib/<package>/."""
-    os.makedirs(WRAPPER_DIR, exist_ok=True)
-    paths = []
-    for name, target in EXECUTABLES.items():
-        module, func = target.split(':')
-        path = os.path.join(WRAPPER_DIR, name)
-        with open(path, 'w') as f:
-            f.write('#!/usr/bin/env python3\n'
-                    f'"""ros2 run launcher for {name}."""\n'
-                    'import sys\n'
-                    f'from {module} import {func}\n'
-                    f'sys.exit({func}())\n')
-        os.chmod(path, 0o755)
-        paths.append(path)
-    return paths
+# `ros2 run` launchers installed under lib/<package>/ (pip ignores setup.cfg's
+# install_scripts), committed in resource/launchers/ so that no build writes into the
+# source tree; test/test_package_layout.py checks they match EXECUTABLES.
+LAUNCHERS = [os.path.join('resource', 'launchers', name) for name in EXECUTABLES]
 
 
 setup(
@@ -57,10 +42,12 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
         ('share/' + package_name + '/config', sorted(glob.glob('config/*'))),
-        ('lib/' + package_name, _write_wrappers()),
+        ('lib/' + package_name, LAUNCHERS),
     ],
     install_requires=['setuptools', 'numpy', 'scipy', 'torch', 'trimesh', 'rosbags',
                       'anny', 'safetensors', 'tqdm', 'pillow', 'roma', 'threadpoolctl'],
+    extras_require={'test': ['pytest']},
+    tests_require=['pytest'],  # colcon test runs pytest (not unittest) when declared
     zip_safe=False,
     maintainer='smpl_depth_ros maintainers',
     maintainer_email='maintainers@smpl-depth-ros.invalid',

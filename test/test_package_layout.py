@@ -1,24 +1,40 @@
-"""`pip install .` lays out what `ros2 run` needs (ament index, share/, lib/<pkg>/)."""
+"""The install lays out what `ros2 run` needs (ament index, share/, lib/<pkg>/): `pip
+install .` into the venv, or `colcon build` into a workspace's install/ (the prefix is
+then found through the ament index of AMENT_PREFIX_PATH); package.xml's keys."""
 import os
 import subprocess
 import sys
 
 import pytest
 
-PREFIX = sys.prefix
+
+def _find_prefix() -> str:
+    """The package's install prefix: through the ament index where AMENT_PREFIX_PATH
+    is set (a sourced colcon workspace or ROS install), else the venv's."""
+    for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep):
+        if p and os.path.exists(os.path.join(p, 'share', 'ament_index', 'resource_index',
+                                             'packages', 'smpl_depth_ros')):
+            return p
+    return sys.prefix
+
+
+PREFIX = _find_prefix()
 
 
 @pytest.fixture(autouse=True)
 def ament_prefix(monkeypatch):
-    monkeypatch.setenv('AMENT_PREFIX_PATH', PREFIX)
+    paths = os.environ.get('AMENT_PREFIX_PATH', '')
+    if PREFIX not in paths.split(os.pathsep):
+        monkeypatch.setenv('AMENT_PREFIX_PATH', os.pathsep.join(p for p in (PREFIX, paths) if p))
 
 
 def test_ament_index_layout():
     from ament_index_python.packages import get_package_prefix, get_package_share_directory
     if not os.path.exists(os.path.join(PREFIX, 'share', 'ament_index', 'resource_index',
                                        'packages', 'smpl_depth_ros')):
-        pytest.fail('smpl_depth_ros is not installed into the venv: run `make install` '
-                    '(the README test command does it)')
+        pytest.fail(f'smpl_depth_ros is not installed under {PREFIX}: run `make install` '
+                    '(the README test command does it), or source a colcon workspace that '
+                    'built it')
     assert get_package_prefix('smpl_depth_ros') == PREFIX
     share = get_package_share_directory('smpl_depth_ros')
     assert os.path.isfile(os.path.join(share, 'package.xml'))
@@ -34,6 +50,24 @@ def test_lib_executable_runs_like_ros2_run():
     out = subprocess.run([sys.executable, exe, '--help'], capture_output=True, text=True,
                          timeout=120)
     assert out.returncode == 0 and '--frames' in out.stdout
+
+
+def test_launchers_match_the_console_scripts():
+    """resource/launchers/ (committed: no build writes into the source tree) holds one
+    executable `ros2 run` launcher per console script of setup.py, calling it."""
+    import ast
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    tree = ast.parse(open(os.path.join(repo, 'setup.py')).read())
+    exes = next(ast.literal_eval(n.value) for n in tree.body if isinstance(n, ast.Assign)
+                and getattr(n.targets[0], 'id', '') == 'EXECUTABLES')
+    folder = os.path.join(repo, 'resource', 'launchers')
+    assert sorted(os.listdir(folder)) == sorted(exes)
+    for name, target in exes.items():
+        module, func = target.split(':')
+        path = os.path.join(folder, name)
+        text = open(path).read()
+        assert os.access(path, os.X_OK) and text.startswith('#!/usr/bin/env python3')
+        assert f'from {module} import {func}' in text and f'sys.exit({func}())' in text
 
 
 # -- package.xml: real rosdep keys, one for every import ---------------------------------
