@@ -46,8 +46,7 @@ setup(
     ],
     install_requires=['setuptools', 'numpy', 'scipy', 'torch', 'trimesh', 'rosbags',
                       'anny', 'safetensors', 'tqdm', 'pillow', 'roma', 'threadpoolctl'],
-    extras_require={'test': ['pytest']},
-    tests_require=['pytest'],  # colcon test runs pytest (not unittest) when declared
+    extras_require={'test': ['pytest']},  # colcon test runs pytest (not unittest)
     zip_safe=False,
     maintainer='smpl_depth_ros maintainers',
     maintainer_email='maintainers@smpl-depth-ros.invalid',
