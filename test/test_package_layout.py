@@ -131,3 +131,21 @@ def test_package_xml_declares_every_import_with_a_real_rosdep_key():
     keys |= set(open(os.path.join(ROSDEP, 'jazzy_packages.txt')).read().split())
     bad = {k for ks in deps.values() for k in ks} - keys
     assert not bad, f'not rosdep keys: {bad}'
+
+
+def test_jazzy_requirements_pin_what_the_venv_pins():
+    """requirements-jazzy.txt (a Jazzy install) pins every non-ROS requirement of the
+    venv's requirements.txt at the same version, and no ROS wheel."""
+    def pins(name):
+        out = {}
+        for line in open(os.path.join(REPO, name)):
+            line = line.split('#')[0].strip()
+            if line:
+                pkg, ver = line.split('==')
+                out[pkg.split('[')[0]] = ver
+        return out
+    venv, jazzy = pins('requirements.txt'), pins('requirements-jazzy.txt')
+    assert not any(k.startswith('ros-') for k in jazzy)
+    expected = {k: v for k, v in venv.items()
+                if not k.startswith(('ros-', 'colcon-'))}
+    assert jazzy == expected
