@@ -36,7 +36,7 @@ def _scene(body, seed, with_params=False):
     return rng, V, out.joints[0].numpy(), front
 
 
-# The pose priors as weak as they were before stop 19 (fit.lambda_pose_l2 1e-7, no extra
+# Weaker pose priors than the defaults (fit.lambda_pose_l2 1e-7, no extra
 # pull of the collars and wrists): the tests of one mechanism against corrupted
 # correspondences use them, since the priors resist such errors too and would hide what
 # the mechanism alone does.
@@ -64,8 +64,8 @@ def test_recovers_known_parameters(body, seed):
     fit = Fitter(body)
     r = fit.fit(V[front], front)
     # All 1,229 vertices, incl. the unseen back. The pose priors pull a little even against
-    # exact data: seed 2's joints end 3.05 mm off on average (under 3 mm with stop 18's
-    # weaker priors).
+    # exact data: seed 2's joints end 3.05 mm off on average (under 3 mm with weaker
+    # priors).
     assert _pve(r, V) < 0.004, _pve(r, V)
     assert np.linalg.norm(r.joints - J, axis=1).mean() < 0.004
     # The root's offset trades against the spine too: 5.9 mm for seed 2, whose collars
@@ -74,7 +74,7 @@ def test_recovers_known_parameters(body, seed):
     turn = Rotation.from_rotvec(r.params.global_orient).inv() * Rotation.from_rotvec(go)
     # The root trades a few degrees against the spine at a sub-millimetre mesh error
     # (seed 2: 2.5 deg point to point, 5.1 deg with the default tangent_weight, 8.2 deg
-    # with stop 19's pose priors pulling the spine towards rest).
+    # with the default pose priors pulling the spine towards rest).
     assert np.degrees(turn.magnitude()) < 10.0
     assert r.median_residual < 0.002 and np.isfinite(r.energy)
     noisy = V[front] + rng.normal(0, 0.005, (len(front), 3)).astype(np.float32)

@@ -161,7 +161,7 @@ def test_play_bag_plain(rclpy_context, bag):
 
 def test_play_bag_clock(rclpy_context, bag):
     """--clock: /clock carries the bag's time, never going backwards, from the first
-    message's time to the last's (stop 13's CI saw a late timer tick send it backwards)."""
+    message's time to the last's (a late timer tick once sent it backwards in CI)."""
     from rosbags.highlevel import AnyReader
     from rosgraph_msgs.msg import Clock
 
