@@ -5,7 +5,7 @@
 # Uses the venv's Python and colcon (VENV, default .venv); `make test` runs it.
 set -euo pipefail
 repo=$(cd "$(dirname "$0")/.." && pwd)
-venv=${VENV:-$repo/.venv}
+venv=$(cd "$repo" && cd "${VENV:-.venv}" && pwd)
 export PATH="$venv/bin:$PATH"
 ws=$(mktemp -d)
 trap 'rm -rf "$ws"' EXIT
