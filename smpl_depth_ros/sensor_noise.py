@@ -204,10 +204,12 @@ class AutoNoise:
         self._sum: dict[int, list[float]] = {}  # bin -> [sum sigma * w, sum w]
         self._corr = [0.0, 0.0]
         self.frames = 0
+        self._model: NoiseModel | None = None  # the estimate, until the next update
 
     def update(self, depth: np.ndarray) -> None:
         e = estimate_noise(depth)
         self.frames += 1
+        self._model = None
         decay = 1.0 - 1.0 / self.memory
         for k in self._sum:
             self._sum[k][0] *= decay
@@ -221,6 +223,11 @@ class AutoNoise:
         self._corr[1] = self._corr[1] * decay + e.corr_count
 
     def model(self) -> NoiseModel:
+        if self._model is None:
+            self._model = self._estimate()
+        return self._model
+
+    def _estimate(self) -> NoiseModel:
         ks = sorted(k for k, (_, w) in self._sum.items() if w >= MIN_PATCHES)
         if not ks:
             return NoiseModel(source='estimated')

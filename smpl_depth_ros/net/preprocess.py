@@ -526,9 +526,11 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
     H, W = depth.shape
     s = max(1, round(W / DETECT_WIDTH))
     depth = np.nan_to_num(depth, nan=0.0)
-    if noise is not None and float(noise(float(np.median(depth[depth > 0]))
-                                         if (depth > 0).any() else 0.0)) > 0:
-        depth = fill_small_holes(depth)  # a noisy (stereo) sensor's holes
+    if noise is not None:
+        dz = depth[::s, ::s]
+        dz = dz[dz > 0]
+        if len(dz) and float(noise(float(np.median(dz)))) > 0:
+            depth = fill_small_holes(depth)  # a noisy (stereo) sensor's holes
     d = depth[::s, ::s]  # pixel (r, c) is full-image (r * s, c * s)
     min_px = min_pixels / s ** 2
     valid = (d >= depth_min) & (d <= depth_max)

@@ -248,8 +248,8 @@ class OakCameraNode(Node):
     @property
     def sensor_preset(self) -> str:
         """The depth-noise preset of the open camera (`oak.sensor_preset`)."""
-        session = getattr(self._driver, 'session', None)
-        return oak.sensor_preset(self.cfg, getattr(session, 'description', ''))
+        opened = self._driver.session  # the open device connection
+        return oak.sensor_preset(self.cfg, getattr(opened, 'description', ''))
 
     def _log_connected(self, session):
         cfg = self.cfg
