@@ -45,6 +45,10 @@ class SampleConfig:
                                      # per class, then per preset); () = Kinect v1 noise
                                      # on every camera preset (the original protocol)
     strength: tuple[float, float] = (0.5, 2.0)  # noise strength, log-uniform
+    rehearse: float = 0.0            # with `sensors`: probability that a sample comes from
+                                     # the original protocol instead (template poses,
+                                     # Kinect v1 noise on the camera presets), so a
+                                     # fine-tune keeps what the shipped network learned
     resolution: tuple[float, float] = (0.5, 1.5)  # sensor image scale (640x480 preset:
                                      # 320x240 to 960x720), uniform
 
@@ -102,6 +106,8 @@ class SampleMaker:
         self.coords = emb[:, :3]
         self.cameras = [c for c in CAMERAS.values()]
         self.sensors = [SENSORS[n] for n in cfg.sensors]
+        self.template_sampler = (PoseSampler(body, head_turn_deg=cfg.head_turn_deg)
+                                 if cfg.rehearse > 0 else self.sampler)
         self.hair = hair_vertices(body) if self.sensors else None
 
     def _sensor(self, rng):
@@ -120,14 +126,15 @@ class SampleMaker:
     def __call__(self, rng: np.random.Generator):
         cfg, body = self.cfg, self.body
         sensor = strength = None
-        if self.sensors:
+        original = not self.sensors or (cfg.rehearse > 0 and rng.random() < cfg.rehearse)
+        if not original:
             sensor, strength = self._sensor(rng)
             cam: Camera = sensor.camera
             pose, root_tilt = self.sampler.sample_posed(rng)
             pose = pose[None]
         else:
             cam = self.cameras[rng.integers(len(self.cameras))]
-            pose, root_tilt = self.sampler.sample(rng, 1), np.zeros(2)
+            pose, root_tilt = self.template_sampler.sample(rng, 1), np.zeros(2)
         shape = sample_shape(body, rng, 1)
         dlo, dhi = cfg.depth_range
         if sensor is not None:

@@ -171,6 +171,10 @@ def main(argv=None):
     ap.add_argument('--sensors', default='', metavar='NAMES',
                     help="comma-separated synth.sensors presets drawn per sample, or 'all' "
                          "(default: Kinect v1 noise on every camera preset)")
+    ap.add_argument('--rehearse', type=float, default=0.0, metavar='P',
+                    help='with --sensors: share of samples drawn from the original protocol '
+                         '(template poses, Kinect v1 noise) so a fine-tune keeps what the '
+                         'initial weights learned (SampleConfig.rehearse; default 0)')
     ap.add_argument('--workers', type=int, default=max(1, (os.cpu_count() or 2) - 1))
     ap.add_argument('--device', default='auto', choices=['auto', 'cpu', 'cuda'])
     ap.add_argument('--seed', type=int, default=7)
@@ -227,7 +231,8 @@ def main(argv=None):
     unknown = [n for n in sensors if n not in SENSORS]
     if unknown:
         ap.error(f'unknown sensors {unknown}; presets: {sorted(SENSORS)}')
-    scfg = SampleConfig(head_turn_deg=args.head_turn, poses=args.poses, sensors=sensors)
+    scfg = SampleConfig(head_turn_deg=args.head_turn, poses=args.poses, sensors=sensors,
+                        rehearse=args.rehearse)
     val = make_fixed_set(body, args.val_size, args.val_seed, scfg)
     print(f'validation set: {args.val_size} samples in {time.time() - t_val:.1f} s',
           file=sys.stderr)
