@@ -24,6 +24,7 @@ EXECUTABLES = {
     'evaluate': 'smpl_depth_ros.tools.evaluate:main',
     'benchmark': 'smpl_depth_ros.tools.benchmark:main',
     'sweep': 'smpl_depth_ros.tools.sweep:main',
+    'evaluate_tracks': 'smpl_depth_ros.tools.evaluate_tracks:main',
 }
 
 # `ros2 run` launchers installed under lib/<package>/ (pip ignores setup.cfg's

@@ -81,6 +81,10 @@ class PipelineConfig:
     tracking: bool = True
     max_image_pixels: int = 4096 * 4096
     tracking_max_gap_s: float = 0.5   # reset tracking after a longer gap between frames
+    track_timeout_s: float = 1.0      # a person unseen for longer loses its ID (a person
+                                      # seen there later gets a new one; IDs never reused)
+    track_gate_m: float = 0.5         # a person matches an earlier one within this distance
+                                      # of where it was predicted (+0.5 m per second unseen)
     shape_sample_every: int = 5       # tracking: every n-th tracked frame also fits the
                                       # shape; tracked frames fit the pose at the mean of
                                       # these samples (0: keep the cold fit's shape)

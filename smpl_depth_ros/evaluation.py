@@ -115,3 +115,65 @@ def surface_distance(pred_v, pred_f, gt_v, gt_f, n: int = 4000, seed: int = 0
     db = cKDTree(sample_surface(pred_v, pred_f, 4 * n, rng)).query(pb)[0]
     d = np.concatenate([da, db])
     return float(np.median(d)), float(d.mean())
+
+
+class TrackScore:
+    """Multi-person tracking scores over a sequence (CLEAR MOT style).
+
+    Per frame, predicted persons are matched to the true ones by pelvis distance (optimal
+    assignment within `max_dist_m`). A true person with at least `min_visible` pixels in
+    view must be found; one with fewer (mostly occluded or outside the image) may be
+    found: matching it is neither a hit nor a false positive. Counts: hits, misses, false
+    positives, ID switches (a true person matched to another ID than at its previous
+    match); MOTA = 1 - (misses + false positives + switches) / persons to find; the PVE of
+    every hit.
+    """
+
+    def __init__(self, min_visible: int, max_dist_m: float = 0.5):
+        self.min_visible, self.max_dist_m = int(min_visible), float(max_dist_m)
+        self.hits = self.misses = self.false_pos = self.switches = self.must = 0
+        self.pve: list[float] = []
+        self.last_id: dict[int, int] = {}
+        self.ids_seen: set[int] = set()
+
+    def add(self, pred_ids, pred_pelvis, pred_vertices, gt_ids, gt_pelvis, gt_vertices,
+            visible) -> None:
+        from scipy.optimize import linear_sum_assignment
+        must = np.asarray(visible) >= self.min_visible
+        self.must += int(must.sum())
+        present = np.asarray(visible) > 0
+        P, G = len(pred_ids), len(gt_ids)
+        matched_p, matched_g = set(), set()
+        if P and G:
+            cost = np.linalg.norm(np.asarray(pred_pelvis)[:, None] -
+                                  np.asarray(gt_pelvis)[None], axis=-1)
+            cost = np.where(present[None], cost, 1e6)
+            rows, cols = linear_sum_assignment(np.minimum(cost, 1e6))
+            for r, c in zip(rows, cols):
+                if cost[r, c] > self.max_dist_m:
+                    continue
+                matched_p.add(r)
+                matched_g.add(c)
+                if not must[c]:
+                    continue
+                self.hits += 1
+                g, pid = int(gt_ids[c]), int(pred_ids[r])
+                if g in self.last_id and self.last_id[g] != pid:
+                    self.switches += 1
+                self.last_id[g] = pid
+                self.pve.append(pve(pred_vertices[r], gt_vertices[c]))
+        self.ids_seen.update(int(i) for i in pred_ids)
+        self.misses += int(sum(1 for c in range(G) if must[c] and c not in matched_g))
+        self.false_pos += P - len(matched_p)
+
+    def summary(self) -> dict:
+        found = self.hits + self.false_pos
+        return dict(
+            persons_to_find=self.must, hits=self.hits, misses=self.misses,
+            false_positives=self.false_pos, id_switches=self.switches,
+            recall=self.hits / max(self.must, 1), precision=self.hits / max(found, 1),
+            id_switches_per_100=100.0 * self.switches / max(self.hits, 1),
+            mota=1.0 - (self.misses + self.false_pos + self.switches) / max(self.must, 1),
+            pve_mm=float(np.mean(self.pve) * 1000) if self.pve else float('nan'),
+            pve_mm_median=float(np.median(self.pve) * 1000) if self.pve else float('nan'),
+            ids_used=len(self.ids_seen))

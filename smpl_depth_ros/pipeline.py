@@ -22,7 +22,8 @@ from smpl_depth_ros.net.infer import CorrespondenceNet
 from smpl_depth_ros.net.preprocess import (NEAR_RANGE, crop_depth, find_persons,
                                            network_input, pixel_points, split_side_by_side)
 from smpl_depth_ros.sensor_noise import (AutoNoise, NoiseModel, check_sensor, noise_model,
-                                         scaled_reject_residual)
+                                         scaled_reject_residual, scaled_spread)
+from smpl_depth_ros.tracking import Tracker, candidate_centre
 from smpl_depth_ros.types import FrameResult, InputError, PersonResult
 
 MAX_FOV_DEG = 170.0  # intrinsics implying a wider field of view are rejected ...
@@ -33,6 +34,8 @@ PLANE_M = 0.02  # 'model' labels: pixels this near a scene plane (the floor unde
                 # are not taken into the person by the margin (val_s2 mIoU 0.847 -> 0.856)
 MODEL_LABEL_POINTS = 8000  # segmentation 'model': pixels labelled per person, at most ~
 SAME_SURFACE_M = 0.03  # ... the others take their cell's part when this close in depth
+CONF_POINTS = 15.0  # joint_confidence: pixels for a joint's support to count as ample
+CONF_RESIDUAL_M = 0.06  # joint_confidence: residual scale (widened for sensor noise)
 AUTO_FIRST = 10  # sensor 'auto': the noise is measured on each of the first frames ...
 AUTO_EVERY = 10  # ... then on every AUTO_EVERY-th (a few ms each)
 _CORNER = 0.6  # barycentric weight of a triangle's corner samples (0.5 / 0.7: worse)
@@ -107,6 +110,35 @@ def body_score(crop, valid: np.ndarray, labels: np.ndarray, image_shape) -> floa
     return n / max(int(blob.sum()), 1) * parts
 
 
+def joint_adjacency(parents) -> np.ndarray:
+    """(J, J) 0/1: the segments that observe each joint: its own and its parent's (the
+    two bones meeting at it), the root's own and its children's."""
+    parents = np.asarray(parents)
+    A = np.eye(len(parents))
+    for j, p in enumerate(parents):
+        if p >= 0:
+            A[j, p] = 1
+            if p == 0:
+                A[0, j] = 1
+    return A
+
+
+def joint_confidence(segment_of_vertex: np.ndarray, vids: np.ndarray,
+                     residuals: np.ndarray, adjacency: np.ndarray,
+                     scale: float = 0.06) -> np.ndarray:
+    """(J,) float32 in [0, 1]: how well each fitted joint is supported by observed
+    pixels: (1 - exp(-n / CONF_POINTS)) times the mean of exp(-(r / scale)^2) over the
+    n fitted pixels on the segments that observe the joint (`joint_adjacency`; r: their
+    distance to their vertex, which a good fit keeps at 1-3 cm on a mesh whose vertices
+    are 2-4 cm apart). 0 for a joint no pixel saw (its pose is the prior's)."""
+    J = len(adjacency)
+    seg = segment_of_vertex[vids]
+    good = np.exp(-(np.asarray(residuals, np.float64) / scale) ** 2)
+    n = adjacency @ np.bincount(seg, minlength=J)[:J].astype(np.float64)
+    s = adjacency @ np.bincount(seg, weights=good, minlength=J)[:J]
+    return ((1 - np.exp(-n / CONF_POINTS)) * s / np.maximum(n, 1)).astype(np.float32)
+
+
 class Reconstructor:
     """Loads the body model and network once; `process` reconstructs one frame.
 
@@ -143,9 +175,8 @@ class Reconstructor:
                                 for p in range(int(parts.max()) + 1)]
         self._part_vertices = [np.flatnonzero((parts == p) & valid)
                                for p in range(int(parts.max()) + 1)]
-        self._track = None  # (FitResult, stamp_ns) of the tracked person
-        self._track_mask = None  # its pixels in the last frame
-        self._shapes = None  # [sum, samples, tracked frames] of the track's shape
+        self.tracker = Tracker(config.track_timeout_s, config.track_gate_m)
+        self._joint_adjacency = joint_adjacency(self.body.joint_parents)
         self._auto = AutoNoise() if config.sensor == 'auto' else None
         self._preset: tuple | None = None  # (fx, NoiseModel) of a sensor preset
         self._frames = 0
@@ -174,10 +205,8 @@ class Reconstructor:
         return self._preset[1]
 
     def reset(self) -> None:
-        """Forget the tracking state (next frame is fitted cold)."""
-        self._track = None
-        self._track_mask = None
-        self._shapes = None
+        """Forget the tracks (the next frame is fitted cold; persons get new IDs)."""
+        self.tracker.clear()
 
     def set_config(self, config: PipelineConfig) -> None:
         """Change the configuration between frames (the node's run-time parameters; a
@@ -186,6 +215,8 @@ class Reconstructor:
         if check_sensor(config.sensor):
             raise ValueError(check_sensor(config.sensor))
         old, self.config = self.config, config
+        self.tracker.timeout_s = config.track_timeout_s
+        self.tracker.gate_m = config.track_gate_m
         if config.fit != old.fit:
             self.fitter = Fitter(self.body, config.fit)
         if config.sensor != old.sensor:
@@ -218,6 +249,8 @@ class Reconstructor:
         K = np.asarray(K, np.float64)
         noise = self._noise_for(d, K)
         excess = None if noise is None else noise.excess
+        t = self._clock(stamp_ns)
+        self.tracker.expire(t)
         crops = find_persons(d, K, cfg.depth_min, cfg.depth_max, cfg.min_person_pixels,
                              max_persons=max(cfg.max_persons, 1) + 2, noise=excess)
         t1 = time.perf_counter()
@@ -227,12 +260,13 @@ class Reconstructor:
         timings = dict(preprocess=(t1 - t0) * 1e3, network=0.0, correspondence=0.0, fit=0.0,
                        labels=0.0)
         if not crops:
-            self.reset()
+            self.tracker.forget_fits()
             raise InputError('no_person', f'no person found between {cfg.depth_min:.2f} and '
                              f'{cfg.depth_max:.2f} m')
         rejected = []  # median residuals of the fits rejected as no person
+        seen: set[int] = set()  # ids of the tracks seen in this frame
         persons = self._persons(d, K, list(crops), stamp_ns, timings, labels_full,
-                                network_full, rejected, noise)
+                                network_full, rejected, noise, seen)
         if not persons:
             # Second look: none of the candidates was a person, but a person standing
             # against a wall may be hidden in a blob too big for one: peel its planes.
@@ -243,9 +277,11 @@ class Reconstructor:
             timings['preprocess'] += (time.perf_counter() - tp) * 1e3
             if [int(c.mask.sum()) for c in again] != [int(c.mask.sum()) for c in crops]:
                 persons = self._persons(d, K, again, stamp_ns, timings, labels_full,
-                                        network_full, rejected, noise)
+                                        network_full, rejected, noise, seen)
+        for tr in self.tracker.tracks:  # warm starts come from the previous frame only
+            if id(tr) not in seen:
+                tr.fit = None
         if not persons:
-            self.reset()
             if rejected:
                 best, limit = min(rejected)
                 why = (f'reject_residual_m {limit * 1e3:.0f} mm'
@@ -261,15 +297,23 @@ class Reconstructor:
         return FrameResult(persons=persons, labels=labels_full, timings_ms=timings,
                            network_labels=network_full)
 
+    def _clock(self, stamp_ns: int | None) -> float:
+        """The tracks' time (s) of a frame: its stamp, or frames counted at 30 Hz."""
+        return stamp_ns * 1e-9 if stamp_ns is not None else self._frames / 30.0
+
     def _persons(self, d, K, crops, stamp_ns, timings, labels_full, network_full,
-                 rejected: list, noise: NoiseModel | None = None) -> list[PersonResult]:
+                 rejected: list, noise: NoiseModel | None = None,
+                 seen: set | None = None) -> list[PersonResult]:
         """Run the network on the candidates and fit them, until max_persons are found
         (see `process`); writes their labels into labels_full (as `segmentation` says)
         and the network's into network_full, and appends (median residual, limit) of
         every fit rejected as no person to `rejected`. `noise`: the sensor noise model;
         each candidate's noise-dependent thresholds are widened for the excess noise at
-        its median depth (sensor_noise)."""
+        its median depth (sensor_noise). Each candidate is matched to its track (tracking)
+        before it is fitted; `seen` collects the ids of the tracks of accepted persons."""
         cfg = self.config
+        seen = set() if seen is None else seen
+        t = self._clock(stamp_ns)
         persons = []
         split_done: set[int] = set()  # halves of split candidates are not split again
         plain_retried: set[int] = set()  # flip_tta: candidates retried on the plain pass
@@ -277,6 +321,9 @@ class Reconstructor:
         plain = {}  # candidate -> its plain network pass, when the mirrored one is pending
         if len(crops) > cfg.max_persons:
             crops, x, lab, coords, plain = self._rank_candidates(d, crops, timings)
+        track_of = dict(zip(map(id, crops), self.tracker.match(
+            np.array([candidate_centre(c, K) for c in crops]).reshape(-1, 3),
+            [c.mask for c in crops], t)))
         for i, crop in enumerate(crops):
             if len(persons) >= cfg.max_persons:
                 break
@@ -291,10 +338,11 @@ class Reconstructor:
                 lab.extend(lb)
                 coords.extend(cb)
                 timings['network'] += (time.perf_counter() - tn) * 1e3
-            if crop.behind and persons:
+            if crop.behind and persons and track_of.get(id(crop)) is None:
                 # Seen through a gap of a nearer candidate that is a person: the background
                 # between its legs, or a part of someone it hides; fitted alone, a crouching
-                # body would be made up for it.
+                # body would be made up for it. Unless it is where a tracked person was:
+                # someone walking behind another.
                 continue
             if i in plain:  # ranked on the plain pass: add the mirrored one (flip_tta)
                 tn = time.perf_counter()
@@ -325,14 +373,21 @@ class Reconstructor:
                 zmed = float(np.median(d[r, c].astype(np.float64)))
                 free = FreeSpace(d, K, zmed, fitter.cfg.free_space_margin, box=box,
                                  planes=supporting_planes(crop.planes, pts))
-            fit, vids, tracked = self._fit(pts, vids, stamp_ns, not persons, free, fitter)
+            centre = candidate_centre(crop, K)
+            track = track_of.get(id(crop))
+            if track is None:  # a new person, a split half, or its track was released
+                taken = seen | {id(tr) for c, tr in track_of.items()
+                                if tr is not None and c != id(crop)}
+                track = self.tracker.match(centre[None], [crop.mask], t, exclude=taken)[0]
+            fit, vids, tracked = self._fit(pts, vids, stamp_ns, track, free, fitter)
             if fit.median_residual > reject:
                 # The body model cannot explain this blob: not a person (or a failed fit),
                 # or two people side by side in one blob: then try its two halves last.
                 timings['fit'] += (time.perf_counter() - tf) * 1e3
                 rejected.append((float(fit.median_residual), reject))
-                if not persons:
-                    self.reset()
+                if track is not None:  # released for the other candidates
+                    track.fit = None
+                    track_of[id(crop)] = None
                 if cfg.flip_tta and id(crop) not in plain_retried:
                     # The averaged plain and mirrored passes can mislead a fit the plain
                     # pass alone gets right (a side view whose left and right the two
@@ -363,24 +418,33 @@ class Reconstructor:
                                       iterations=cfg.fit.tracking_iterations,
                                       free_space=free,
                                       tangent_weight=cfg.fit.icp_tangent_weight)
-            if not persons and cfg.tracking and self._track is not None:
-                self._track = (fit, stamp_ns)
+            if track is None:
+                track = self.tracker.new(centre, t)
+            if cfg.tracking:
+                track.fit, track.fit_time, track.fit_stamp = fit, t, stamp_ns
                 if not tracked:  # a new track keeps the cold fit's shape until sampled
-                    self._shapes = [np.zeros(len(fit.params.shape)), 0, 0]
+                    track.shapes = [np.zeros(len(fit.params.shape)), 0, 0]
+            else:
+                track.fit = None
             timings['fit'] += (time.perf_counter() - tf) * 1e3
             tl = time.perf_counter()
             mask = self._paste_labels(labels_full, crop, lab[i], d, K, fit.vertices,
                                       network_full)
             timings['labels'] += (time.perf_counter() - tl) * 1e3
-            if not persons:
-                self._track_mask = mask if self._track is not None else None
+            seen.add(id(track))
+            Tracker.seen(track, fit.joints[0], t, mask)
+            conf = joint_confidence(self.fitter.rig.segment_of_vertex, vids,
+                                    np.linalg.norm(fit.vertices[vids] - pts, axis=1),
+                                    self._joint_adjacency,
+                                    scaled_spread(CONF_RESIDUAL_M, excess))
             persons.append(PersonResult(
                 params=fit.params, vertices=fit.vertices, joints=fit.joints,
                 bbox=(int(crop.u0), int(crop.v0), int(crop.u0 + crop.scale * crop.size),
                       int(crop.v0 + crop.scale * crop.size)),
                 mask=mask, residual_m=fit.median_residual, num_points=int(len(pts)),
                 tracked=tracked, pixels=np.stack([r, c], 1), vertex_ids=vids, crop=crop,
-                crop_labels=np.where(x[i][1] > 0, lab[i], 0).astype(np.uint8)))
+                crop_labels=np.where(x[i][1] > 0, lab[i], 0).astype(np.uint8),
+                track_id=track.id, joint_confidence=conf))
         return persons
 
     def _rank_candidates(self, d, crops, timings):
@@ -398,10 +462,12 @@ class Reconstructor:
         with flip_tta `plain` maps each candidate to that pass (the mirrored one is added
         for the candidates actually used).
         """
-        prev = self._track_mask
-        if self.config.tracking and self._track is not None and prev is not None:
-            if prev.shape == d.shape:
-                order = np.argsort([-(c.mask & prev).sum() for c in crops], kind='stable')
+        prev = [tr.mask for tr in self.tracker.tracks
+                if tr.fit is not None and tr.mask is not None]
+        if self.config.tracking and prev:
+            if all(m.shape == d.shape for m in prev):
+                order = np.argsort([-max((c.mask & m).sum() for m in prev) for c in crops],
+                                   kind='stable')
                 return [crops[i] for i in order], [], [], [], {}
             return crops, [], [], [], {}
         tn = time.perf_counter()
@@ -500,7 +566,7 @@ class Reconstructor:
         ok = np.isfinite(dist)
         return P[ok].astype(np.float32), ids[idx[ok]]
 
-    def _fit(self, pts, vids, stamp_ns, first: bool, free=None, fitter=None):
+    def _fit(self, pts, vids, stamp_ns, track=None, free=None, fitter=None):
         """Fit one person: warm-started from the previous frame while the track holds
         (refining the correspondences on the previous, moved mesh was measured to lock
         onto wrong poses; `process` refines them on this frame's warm fit instead), else
@@ -513,42 +579,40 @@ class Reconstructor:
         """
         cfg = self.config
         fitter = fitter or self.fitter
-        if first and cfg.tracking and self._track is not None:
-            prev, prev_stamp = self._track
+        if cfg.tracking and track is not None and track.fit is not None:
+            prev_stamp = track.fit_stamp
             gap_ok = (stamp_ns is None or prev_stamp is None or
                       0 <= (stamp_ns - prev_stamp) * 1e-9 <= cfg.tracking_max_gap_s)
             if gap_ok:
-                init = prev.params
-                if self._shapes is not None and self._shapes[1]:  # pose at the mean shape
-                    mean = self._shapes[0] / self._shapes[1]
+                init = track.fit.params
+                shapes = track.shapes
+                if shapes is not None and shapes[1]:  # pose at the mean shape
+                    mean = shapes[0] / shapes[1]
                     init = replace(init, shape=mean.astype(np.asarray(init.shape).dtype))
                 fit = fitter.fit(pts, vids, init=init, free_space=free,
                                  temporal_weight=cfg.fit.lambda_temporal)
                 if fit.median_residual <= fitter.cfg.lost_residual_m:
-                    self._track = (fit, stamp_ns)
-                    self._sample_shape(pts, vids, fit, fitter)
+                    self._sample_shape(pts, vids, fit, track.shapes, fitter)
                     return fit, vids, True
         fit = fitter.fit(pts, vids, free_space=free)
-        if first:
-            self._track = (fit, stamp_ns) if cfg.tracking else None
         return fit, vids, False
 
-    def _sample_shape(self, pts, vids, fit, fitter=None) -> None:
+    def _sample_shape(self, pts, vids, fit, shapes, fitter=None) -> None:
         """Every `shape_sample_every`-th tracked frame, a short warm fit with the shape
         free adds a sample to the track's mean shape. One frame's shape is only as good as
         its correspondences; averaged over the track it is measured better (val seq_s5
         tracking 28.7 -> 25.9 mm; a shape oracle gains about as much). The cold fit's shape
         is not a sample: counted in, it measured 27.3 mm."""
         every = self.config.shape_sample_every
-        if every <= 0 or self._shapes is None:
+        if every <= 0 or shapes is None:
             return
-        self._shapes[2] += 1
-        if self._shapes[2] % every:
+        shapes[2] += 1
+        if shapes[2] % every:
             return
         s = (fitter or self.fitter).fit(pts, vids, init=fit.params, fix_shape=False,
                                         iterations=2)
-        self._shapes[0] = self._shapes[0] + np.asarray(s.params.shape, np.float64)
-        self._shapes[1] += 1
+        shapes[0] = shapes[0] + np.asarray(s.params.shape, np.float64)
+        shapes[1] += 1
 
     @staticmethod
     def _blob_fraction(crop, valid) -> float:

@@ -45,6 +45,9 @@ class PersonResult:
         crop: the net.preprocess.Crop the network saw (its mapping to full-image pixels).
         crop_labels: (S, S) uint8, the network's part labels at its own input resolution
             (0 where the input pixel was invalid).
+        track_id: the person's stable ID (>= 1; tracking.Tracker), -1 if untracked.
+        joint_confidence: (J,) float32 in [0, 1] per joint of `joints`: how well observed
+            pixels and the fit support it (pipeline.joint_confidence).
     """
 
     params: BodyParams
@@ -59,6 +62,8 @@ class PersonResult:
     vertex_ids: np.ndarray | None = None  # (N,) their Eq. 2 template vertex
     crop: object | None = None
     crop_labels: np.ndarray | None = None
+    track_id: int = -1
+    joint_confidence: np.ndarray | None = None
 
 
 @dataclass

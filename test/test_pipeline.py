@@ -78,13 +78,15 @@ def test_tracking_fits_the_pose_at_the_mean_of_sampled_shapes():
         r = rec.process(d.astype(np.float32), f['K'], stamp_ns=(1 + n) * 33_000_000)
         assert r.persons[0].tracked == (n > 0)
         shapes.append(r.persons[0].params.shape)
-    assert rec._shapes[1] == 2  # tracked frames 2 and 4 were sampled
+    (track,) = rec.tracker.tracks
+    assert track.shapes[1] == 2  # tracked frames 2 and 4 were sampled
     np.testing.assert_array_equal(shapes[1], shapes[0])  # the cold fit's, until sampled
     np.testing.assert_array_equal(shapes[2], shapes[1])
     assert np.abs(shapes[3] - shapes[0]).max() > 1e-4  # the first sample's
-    np.testing.assert_allclose(shapes[5], rec._shapes[0] / 2, atol=1e-6)  # the mean
+    np.testing.assert_allclose(shapes[5], track.shapes[0] / 2, atol=1e-6)  # the mean
+    assert {p.track_id for p in r.persons} == {track.id}
     rec.reset()
-    assert rec._shapes is None
+    assert rec.tracker.tracks == []
 
 
 def test_tracking_resets_when_the_person_leaves_or_the_track_is_lost(rec):

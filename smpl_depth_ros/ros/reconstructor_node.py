@@ -64,6 +64,9 @@ _CORE_DOC = {
     'tracking': 'warm-start from the previous frame while the track holds',
     'max_image_pixels': 'larger depth images are rejected (width x height)',
     'tracking_max_gap_s': 'reset tracking after a longer gap between frame stamps (s)',
+    'track_timeout_s': 'a person unseen for longer loses its ID; IDs are never reused (s)',
+    'track_gate_m': 'a person keeps its ID within this distance of where it was predicted, '
+                    '+0.5 m per second unseen (m)',
     'reject_residual_m': 'person candidates whose fit leaves a larger median residual are '
                          'not reported (m)',
     'sensor': "the depth sensor, whose noise the thresholds scale with: 'auto' (measured "
@@ -146,6 +149,7 @@ RELIABILITY = {'best_effort': ReliabilityPolicy.BEST_EFFORT,
                'reliable': ReliabilityPolicy.RELIABLE}
 _FLOAT_RANGES = {
     'depth_min': (0.0, 100.0), 'depth_max': (0.0, 100.0), 'tracking_max_gap_s': (0.0, 3600.0),
+    'track_timeout_s': (0.0, 3600.0), 'track_gate_m': (0.0, 100.0),
     'mesh_decimation': (0.001, 1.0), 'mesh_lifetime_s': (0.0, 3600.0),
     'diagnostics_period_s': (0.05, 3600.0), 'warn_throttle_s': (0.0, 3600.0),
     'fit.gm_sigma': (1e-6, 10.0), 'fit.gm_sigma_start': (1e-6, 10.0),

@@ -283,3 +283,121 @@ def make_sequence(body: BodyModel, sampler: PoseSampler, rng: np.random.Generato
                                                  avoid=track_xyz)
         yield _finish(body, camera, verts, joints, poses[f], shape, go, transl, scene,
                       noise, p, noise_rng)
+
+
+def make_multi_sequence(body: BodyModel, sampler: PoseSampler, rng: np.random.Generator,
+                        camera: Camera, frames: int, persons: int, noise: bool = True,
+                        background: bool = True, params: SynthParams | None = None,
+                        rate: float = 30.0) -> Iterator[dict]:
+    """Several people walking across one static camera's view, `frames` frames.
+
+    Each person keeps to a lane at its own depth (lanes at least 0.6 m apart, from where
+    whole bodies fit in the view to 4.5 m, so nobody walks through anybody), walks along it at 0.3-0.9 m/s facing roughly where it
+    goes, and moves its limbs as `PoseSampler.sequence`; lanes run in both directions, so
+    people cross in front of each other (occlusions), and start or end outside the view
+    (people entering and leaving). One floor under everybody, the camera 0.85-1.05 m above
+    it; camera tilt and shapes are fixed per sequence. With frames=1 this is one multi-person scene.
+
+    Args:
+        body, sampler, rng, camera, noise, background, params: as for `make_sequence`.
+        frames: number of frames; persons: number of people (>= 1).
+        rate: frames per second (the walking speed's clock).
+
+    Yields:
+        Frame dicts with depth, depth_clean, labels, vertex_ids (the person's own vertex),
+        K as `make_frame`, and per person (N = persons, in a fixed order; person k has the
+        ground-truth ID k + 1): vertices (N, V, 3), joints (N, J, 3), pose (N, P, 3),
+        shape (N, S), global_orient (N, 3), transl (N, 3), person_index (H, W) int8 (the
+        person seen at each valid pixel, -1 none) and visible (N,) int32 pixel counts.
+    """
+    p = params or SynthParams()
+    if persons < 1:
+        raise ValueError('persons must be >= 1')
+    scene_seed, noise_seed = rng.integers(0, 2**63 - 1, 2)
+    noise_rng = np.random.default_rng(noise_seed)
+    zlo, zhi = root_depth_range(camera, p)
+    # Nearest lane: where the view holds 1.05 m above and below the camera (whole bodies
+    # in view for a camera at about hip height).
+    near = 1.05 * camera.fy / max(min(camera.cy, camera.height - camera.cy), 1.0)
+    zlo = max(zlo, near)
+    zhi = max(zlo + 0.6 * (persons - 1), min(zhi, 4.5))
+    lanes = np.linspace(zlo, zhi, persons) if persons > 1 else np.array([(zlo + zhi) / 2])
+    gap = (zhi - zlo) / max(persons - 1, 1)
+    lanes = lanes + rng.uniform(-0.2, 0.2, persons) * min(gap - 0.6, 0.5) if persons > 1 \
+        else lanes
+    lanes = rng.permutation(lanes)
+    pitch, roll = np.deg2rad(rng.uniform(-p.tilt_deg, p.tilt_deg, 2) * 0.5)
+    tilt = Rotation.from_euler('xz', [pitch, roll]).as_matrix()
+    up = OPTICAL_FROM_CANONICAL @ tilt @ np.array([0.0, 1.0, 0.0])
+    height = rng.uniform(0.85, 1.05)
+    C = body.canonical_rotation.cpu().numpy().astype(np.float64)
+    t = np.arange(frames) / rate
+    sign = 1.0 if rng.random() < 0.5 else -1.0
+    people = []
+    for k in range(persons):
+        shape = sample_shape(body, rng)[0]
+        poses = sampler.sequence(rng, frames, p.pose_key_every)
+        z = float(lanes[k])
+        half = (camera.width / 2) / camera.fx * z  # half the view's width at the lane
+        direction = sign * (1.0 if k % 2 == 0 else -1.0)  # neighbouring lanes cross
+        speed = rng.uniform(0.3, 0.9)
+        x0 = -direction * rng.uniform(0.2, 1.15) * half  # in view, or entering it
+        yaw = direction * np.pi / 2 + np.deg2rad(rng.uniform(-50, 50))
+        _, t0 = placement(body, shape, 0.0, 0.0, 0.0, np.zeros(3))
+        people.append(dict(shape=shape, poses=poses, z=z, x=x0 + direction * speed * t,
+                           yaw=yaw, t0=t0))
+    faces1 = body.faces_numpy()
+    parts1 = body.part_labels.cpu().numpy()
+    V = body.num_vertices
+    faces = np.concatenate([faces1 + k * V for k in range(persons)])
+    parts = np.tile(parts1, persons)
+    scene = None
+    for f in range(frames):
+        verts_all, out = [], {k: [] for k in ('vertices', 'joints', 'pose', 'shape',
+                                              'global_orient', 'transl')}
+        for pp in people:
+            R = OPTICAL_FROM_CANONICAL @ tilt @ Rotation.from_euler('y', pp['yaw']).as_matrix() @ C
+            go = Rotation.from_matrix(R).as_rotvec()
+            rel, jrel = _forward(body, pp['poses'][f], pp['shape'], go, pp['t0'])
+            x, z = float(pp['x'][f]), pp['z']
+            m = float((rel @ up).min())
+            y = (-height - m - x * up[0] - z * up[2]) / up[1]  # lowest vertex on the floor
+            root = np.array([x, y, z])
+            verts_all.append(rel + root)
+            for key, val in (('vertices', rel + root), ('joints', jrel + root),
+                             ('pose', pp['poses'][f]), ('shape', pp['shape']),
+                             ('global_orient', go), ('transl', pp['t0'] + root)):
+                out[key].append(np.asarray(val, np.float32))
+        verts = np.concatenate(verts_all)
+        if background and scene is None:
+            roots = np.stack([np.stack([pp['x'], np.zeros(frames), np.full(frames, pp['z'])], 1)
+                              for pp in people]).reshape(-1, 3)
+            centre = np.array([0.0, 0.0, float(np.max(lanes))])  # the room beyond
+            scene = render_mod.sample_background(np.random.default_rng(scene_seed), camera,
+                                                 centre, verts, up, p.background,
+                                                 avoid=roots)
+        r = render_mod.render_body(verts, faces, parts, camera, scene)
+        inrange = (r.depth >= camera.min_range) & (r.depth <= camera.max_range)
+        clean = np.where(inrange, r.depth, 0).astype(np.float32)
+        labels = np.where(inrange, r.labels, 0).astype(np.uint8)
+        vids = np.where(inrange, r.vertex_ids, -1).astype(np.int32)
+        depth = clean
+        if noise:
+            if p.sensor is not None:
+                nr = p.sensor.apply(clean, r.normals_cos, noise_rng, p.strength,
+                                    fx=camera.fx)
+            else:
+                nr = noise_mod.apply_noise(clean, r.normals_cos, noise_rng, p.noise,
+                                           fx=camera.fx)
+            ok = (nr.depth >= camera.min_range) & (nr.depth <= camera.max_range)
+            depth = np.where(ok, nr.depth, 0).astype(np.float32)
+            labels = np.where(ok, nr.take(labels, 0), 0).astype(np.uint8)
+            vids = np.where(ok, nr.take(vids, -1), -1).astype(np.int32)
+        who = np.where(vids >= 0, vids // V, -1).astype(np.int8)
+        frame = {k: np.stack(v) for k, v in out.items()}
+        frame.update(depth=depth, depth_clean=clean, labels=labels,
+                     vertex_ids=np.where(vids >= 0, vids % V, -1).astype(np.int32),
+                     person_index=who, K=camera.K,
+                     visible=np.bincount(who[who >= 0].astype(np.int64),
+                                         minlength=persons).astype(np.int32))
+        yield frame

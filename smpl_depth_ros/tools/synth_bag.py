@@ -10,6 +10,13 @@ joints, joint_names, pose, shape, global_orient, transl, body_model, topology, K
 height, labels (N, H, W uint8), vertex_ids (N, H, W int32, -1 empty), seed, camera,
 sensor, strength, poses.
 
+`--persons N` (N >= 2) writes several people walking across the view on lanes at their
+own depths, crossing in front of each other, entering and leaving
+(`synth.dataset.make_multi_sequence`; with `--sequence` one continuous scene, else an
+independent scene per frame). Its ground truth adds a person axis: vertices (F, N, V, 3),
+joints, pose, shape, global_orient, transl per person, person_ids (N,) (the true IDs),
+visible (F, N) pixel counts and person_index (F, H, W int8, -1 none).
+
 `--sensor` takes a depth-sensor preset (synth.sensors: structured light, active stereo,
 time of flight): its camera and its noise model. Without it, the Kinect v1 noise model
 is applied on `--camera` (the original protocol).
@@ -72,6 +79,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument('--head-turn', type=float, default=0.0, metavar='DEG',
                     help='also turn the heads: yaw up to +-DEG at the neck and again at the '
                          'head, pitch up to +-DEG/2 (default 0: the pose templates only)')
+    ap.add_argument('--persons', type=int, default=1,
+                    help='people in the scene (>= 2: several people walking across the view)')
     ap.add_argument('--no-noise', action='store_true', help='exact depth (mm-rounded by 16UC1)')
     ap.add_argument('--no-background', action='store_true', help='the person only')
     ap.add_argument('--encoding', default='16UC1', choices=['16UC1', '32FC1'])
@@ -86,6 +95,9 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     if args.frames < 1:
         print('synth_bag: --frames must be >= 1', file=sys.stderr)
+        return 2
+    if args.persons < 1:
+        print('synth_bag: --persons must be >= 1', file=sys.stderr)
         return 2
     if args.rate <= 0:
         print('synth_bag: --rate must be > 0', file=sys.stderr)
@@ -134,7 +146,15 @@ def main(argv=None) -> int:
     except ValueError as e:
         print(f'synth_bag: {e}', file=sys.stderr)
         return 2
-    if args.sequence:
+    multi = args.persons > 1
+    if multi and args.sequence:
+        frames = dataset.make_multi_sequence(body, sampler, rng, camera, N, args.persons,
+                                             noise, bg, params, rate=args.rate)
+    elif multi:
+        frames = (next(dataset.make_multi_sequence(body, sampler, rng, camera, 1,
+                                                   args.persons, noise, bg, params))
+                  for _ in range(N))
+    elif args.sequence:
         frames = dataset.make_sequence(body, sampler, rng, camera, N, noise, bg, params)
     else:
         frames = (dataset.make_frame(body, sampler, rng, camera, noise, bg, params)
@@ -147,6 +167,8 @@ def main(argv=None) -> int:
     per_frame: dict[str, list] = {k: [] for k in
                                   ('vertices', 'joints', 'pose', 'shape', 'global_orient',
                                    'transl')}
+    if multi:
+        per_frame.update(visible=[], person_index=[])
 
     def stream():
         it = frames
@@ -164,7 +186,12 @@ def main(argv=None) -> int:
     n = write_depth_bag(out, stream(), camera, args.encoding, args.storage)
     np.savez_compressed(
         gt_file, stamps=stamps[:n],
-        **{k: np.stack(v).astype(np.float32) for k, v in per_frame.items()},
+        **{k: np.stack(v).astype(np.float32) for k, v in per_frame.items()
+           if k not in ('visible', 'person_index')},
+        **({'visible': np.stack(per_frame['visible']),
+            'person_index': np.stack(per_frame['person_index']),
+            'person_ids': np.arange(1, args.persons + 1, dtype=np.int32)} if multi else {}),
+        persons=np.int64(args.persons),
         faces=body.faces_numpy(), joint_names=np.array(body.joint_names),
         body_model=np.array(body.name), topology=np.array(topology_name(body)),
         K=camera.K, width=np.int64(W), height=np.int64(H), labels=labels[:n],
@@ -179,7 +206,7 @@ def main(argv=None) -> int:
                       'gt': gt_file, 'camera': camera.name, 'size': [W, H],
                       'encoding': args.encoding, 'storage': args.storage,
                       'sequence': bool(args.sequence), 'noise': noise, 'background': bg,
-                      'sensor': args.sensor, 'poses': args.poses,
+                      'sensor': args.sensor, 'poses': args.poses, 'persons': args.persons,
                       'backend': body.name}))
     return 0
 
