@@ -62,6 +62,8 @@ from typing import Any, Callable, Iterator
 import numpy as np
 
 from smpl_depth_ros.config import FitConfig, PipelineConfig
+from smpl_depth_ros.ros.outputs import OUTPUT_PARAMS, TOPICS, FrameOutputs
+from smpl_depth_ros.ros.outputs import OutputOptions as _Outputs
 from smpl_depth_ros.sensor_noise import check_sensor
 from smpl_depth_ros.types import InputError
 
@@ -72,20 +74,14 @@ DIAGNOSTICS_TOPIC = '/diagnostics'
 IMAGE_T = 'sensor_msgs/msg/Image'
 INFO_T = 'sensor_msgs/msg/CameraInfo'
 DIAG_T = 'diagnostic_msgs/msg/DiagnosticArray'
-# Output key -> (topic suffix under the namespace, message type), as the node publishes.
-OUTPUTS = {
-    'mesh': ('mesh', 'visualization_msgs/msg/Marker'),
-    'segmentation': ('segmentation', IMAGE_T),
-    'labels': ('segmentation/labels', IMAGE_T),
-    'smpl_params': ('smpl_params', 'sensor_msgs/msg/JointState'),
-    'skeleton': ('skeleton', 'visualization_msgs/msg/MarkerArray'),
-}
+# Output key -> (topic under the namespace, or absolute; message type), as the node
+# publishes (ros.outputs).
+OUTPUTS = TOPICS
 TIMING_NAMES = ('preprocess', 'network', 'correspondence', 'fit', 'labels', 'total',
                 'outputs')
 MESH_FORMATS = ('ply', 'obj', 'glb')
 # Node parameters that matter offline (the rest are about QoS and live diagnostics).
-NODE_OPTIONS = {'publish_mesh': True, 'publish_segmentation': True, 'publish_params': True,
-                'publish_skeleton': True, 'mesh_decimation': 1.0, 'mesh_lifetime_s': 0.5}
+NODE_OPTIONS = {k: v for k, (v, _) in OUTPUT_PARAMS.items()}
 NODE_ONLY = {'qos_reliability', 'qos_depth', 'diagnostics_period_s', 'warn_throttle_s',
              'cpu_threads'}  # offline: threads follow --workers
 EXIT_OK, EXIT_USAGE, EXIT_DAMAGED, EXIT_INTERRUPTED = 0, 1, 3, 130
@@ -716,6 +712,7 @@ class OutputOptions:
     publish_segmentation: bool = True
     publish_params: bool = True
     publish_skeleton: bool = True
+    publish_tf: bool = True
     mesh_decimation: float = 1.0
     mesh_lifetime_s: float = 0.5
     export_meshes: str | None = None
@@ -734,10 +731,9 @@ class FrameProcessor:
         self.body = self.rec.body
         self.msgs = A.rosbags_factory()
         self.typestore = self.msgs.typestore
-        jp = self.body.joint_parents
-        self.parents = np.asarray(jp.cpu() if hasattr(jp, 'cpu') else jp).reshape(-1)
         self.faces = self.body.faces_numpy()
-        self.marker_faces = self._decimated_faces(opts.mesh_decimation)
+        self.outputs = FrameOutputs(self.body, self.rec.fitter.joint_frames,
+                                    _Outputs.from_values(vars(opts)), self.msgs)
 
     def info(self) -> dict:
         return dict(body=self.body.name, device=str(self.rec.device),
@@ -745,19 +741,10 @@ class FrameProcessor:
                     shape_names=list(self.body.shape_names),
                     num_pose=int(self.body.num_pose_joints), num_shape=int(self.body.num_shape))
 
-    def _decimated_faces(self, frac: float) -> np.ndarray:
-        """As the node: clustering decimation computed on the rest mesh."""
-        if frac >= 1.0:
-            return self.faces
-        import torch
-        with torch.no_grad():
-            rest = self.body(**self.body.zero_params(1)).vertices[0].cpu().numpy()
-        return self.A.decimate_faces(rest, self.faces, max(1, int(round(frac * len(
-            self.faces)))))
-
     def run(self, job: Job) -> Outcome:
         if job.reset:
             self.rec.reset()
+            self.outputs.forget()
         out = Outcome(job.index, 'ok', stamp_ns=job.stamp_ns, frame_id=job.frame_id)
         try:
             res = self.rec.process(job.depth, job.K, stamp_ns=job.stamp_ns)
@@ -790,28 +777,11 @@ class FrameProcessor:
         return out
 
     def _messages(self, res, persons, job: Job) -> list[tuple[str, bytes]]:
-        A, f, o, ts = self.A, self.msgs, self.opts, self.typestore
-        header = A.make_header(None, f, stamp_ns=job.stamp_ns, frame_id=job.frame_id)
-        msgs = []  # (key, message or its CDR bytes), in publishing order
-        if o.publish_segmentation:
-            rgb, ids = A.labels_to_image_msgs(res.labels, header, msgs=f)
-            msgs += [('segmentation', rgb), ('labels', ids)]
-        for i, person in enumerate(persons):
-            if o.publish_mesh:  # points spliced in as one block (A.marker_cdr)
-                empty = A.mesh_marker(np.zeros((0, 3)), np.zeros((0, 3), np.int64), header,
-                                      id=i, lifetime_s=o.mesh_lifetime_s, msgs=f)
-                msgs.append(('mesh', A.marker_cdr(
-                    empty, person.vertices[self.marker_faces.reshape(-1)], f)))
-            if o.publish_skeleton:
-                msgs.append(('skeleton', A.skeleton_markers(person.joints, self.parents,
-                                                            header, id=i,
-                                                            lifetime_s=o.mesh_lifetime_s,
-                                                            msgs=f)))
-            if i == 0 and o.publish_params:
-                msgs.append(('smpl_params', A.params_to_joint_state(person, self.body, header,
-                                                                    msgs=f)))
+        header = self.A.make_header(None, self.msgs, stamp_ns=job.stamp_ns,
+                                    frame_id=job.frame_id)
+        ts = self.typestore
         return [(k, m if isinstance(m, bytes) else bytes(ts.serialize_cdr(m, OUTPUTS[k][1])))
-                for k, m in msgs]
+                for k, m in self.outputs.build(res, persons, header)]
 
     def _export(self, persons, job: Job) -> list[str]:
         import trimesh
@@ -843,6 +813,10 @@ def _worker_info() -> dict:
 
 def _worker_chunk(jobs: list[Job]) -> list[Outcome]:
     _WORKER.rec.reset()  # tracking holds within a chunk only
+    _WORKER.outputs.forget()
+    if jobs:  # person IDs unique across chunks: a chunk's start at most max_persons a frame
+        _WORKER.rec.tracker.start_ids_at(
+            1 + jobs[0].index * max(1, _WORKER.rec.config.max_persons))
     return [_WORKER.run(j) for j in jobs]
 
 
@@ -1064,8 +1038,11 @@ def process_bag(bag: str | Path, out_dir: str | Path, *, config: PipelineConfig 
             log(f'cannot open {bag} normally ({src.open_error}); reading its readable part')
         depth_topic, info_topic = select_topics(src.topics, depth_topic, info_topic,
                                                 exclude_prefix=output_ns)
-        out_topics = {k: f'{output_ns}/{suffix}' for k, (suffix, _) in OUTPUTS.items()}
-        clash = sorted({t.topic for t in src.topics} & set(out_topics.values()))
+        out_topics = {k: suffix if suffix.startswith('/') else f'{output_ns}/{suffix}'
+                      for k, (suffix, _) in OUTPUTS.items()}
+        # /tf is shared: a recording's own transforms and ours go to the same topic.
+        clash = sorted({t.topic for t in src.topics} & {
+            v for k, v in out_topics.items() if not OUTPUTS[k][0].startswith('/')})
         if clash:
             raise ProcessBagError(f'the bag already has output topic(s) {", ".join(clash)} '
                                   '(an output bag?); pass --output-ns to write elsewhere')
@@ -1205,8 +1182,9 @@ class _BagRun:
                         t.topic, t.msgtype, msgdef=t.msgdef or '',
                         rihs01=t.digest or 'RIHS01_' + '0' * 64, offered_qos_profiles=t.qos)
             self.conn_in[t.id] = added[key]
-        self.conn_out = {k: w.add_connection(self.out_topics[k], OUTPUTS[k][1],
-                                             typestore=self.jazzy) for k in OUTPUTS}
+        self.conn_out = {k: added.get((self.out_topics[k], OUTPUTS[k][1])) or
+                         w.add_connection(self.out_topics[k], OUTPUTS[k][1],
+                                          typestore=self.jazzy) for k in OUTPUTS}
         self.conn_diag = added.get((DIAGNOSTICS_TOPIC, DIAG_T)) or w.add_connection(
             DIAGNOSTICS_TOPIC, DIAG_T, typestore=self.jazzy)
 

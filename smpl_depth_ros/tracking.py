@@ -81,6 +81,10 @@ class Tracker:
         self.tracks: list[Track] = []
         self._next_id = 1
 
+    def start_ids_at(self, first: int) -> None:
+        """Let new IDs start at `first` (at least; IDs already given stay unused)."""
+        self._next_id = max(self._next_id, int(first))
+
     def clear(self) -> None:
         """Drop every track (IDs are still never reused)."""
         self.tracks = []

@@ -37,7 +37,8 @@ PARAMS_FILE = REPO / 'config' / 'reconstructor.yaml'
 DEPTH, INFO = '/camera/depth/image_raw', '/camera/depth/camera_info'
 FRAME = 'camera_depth_optical_frame'
 FRAMES = 6
-OUT_TOPICS = {f'/reconstructor/{suffix}': t for suffix, t in OUTPUTS.values()}
+OUT_TOPICS = {suffix if suffix.startswith('/') else f'/reconstructor/{suffix}': t
+              for suffix, t in OUTPUTS.values()}
 MEAN_ERR_MM, FRAME_ERR_MM = 80.0, 120.0
 QUIET = dict(progress=False, log=lambda m: None)
 
@@ -86,10 +87,15 @@ def storage_file(bag: Path) -> Path:
     return next(p for p in bag.iterdir() if p.suffix in ('.mcap', '.db3'))
 
 
+def msg_header(msg):
+    if hasattr(msg, 'markers'):
+        return msg.markers[0].header
+    return msg.transforms[0].header if hasattr(msg, 'transforms') else msg.header
+
+
 def header_stamp(msg) -> int:
     from smpl_depth_ros.ros.adapters import stamp_to_ns
-    h = msg.markers[0].header if hasattr(msg, 'markers') else msg.header
-    return stamp_to_ns(h.stamp)
+    return stamp_to_ns(msg_header(msg).stamp)
 
 
 def mesh_points(marker) -> np.ndarray:
@@ -104,8 +110,7 @@ def check_outputs(out: Path, summary: dict, frames_ok: list[int]):
         got = bag.get(topic, [])
         assert [header_stamp(m) for _, m in got] == frames_ok, topic
         for t, m in got:
-            assert (m.markers[0].header if hasattr(m, 'markers') else m.header).frame_id \
-                == FRAME
+            assert msg_header(m).frame_id == FRAME
     res = dict(np.load(out / 'results.npz'))
     assert len(res['stamps']) == summary['frames_read']
     assert summary['frames_read'] == summary['processed'] + sum(summary['skipped'].values())

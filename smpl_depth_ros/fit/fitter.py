@@ -364,6 +364,16 @@ class Fitter:
             self._noisy[key] = f
         return self._noisy[key]
 
+    def joint_frames(self, params: BodyParams) -> tuple[np.ndarray, np.ndarray]:
+        """World rotations (J, 3, 3) and positions (J, 3) of the fitted joints (root
+        first, the order of `FitResult.joints`) for `params`: the joints' frames for TF."""
+        rig = self.rig
+        rot = _rodrigues(np.concatenate([np.asarray(params.global_orient, np.float64)[None],
+                                         np.asarray(params.pose, np.float64).reshape(-1, 3)]))
+        h0 = self._rest(params.shape)[3]
+        G, x = rig.fk(rot, h0)
+        return G[rig.jb], x[rig.jb] + np.asarray(params.transl, np.float64)
+
     def _pose_l2_weights(self) -> np.ndarray:
         """(P,) weight per pose joint of its pull towards rest (per rad^2):
         cfg.lambda_pose_l2, plus cfg.lambda_pose_weak for the weakly observed joints."""

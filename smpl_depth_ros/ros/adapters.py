@@ -20,6 +20,13 @@ vector, values in ``position``)::
     shape.<name>                                       for body.shape_names
 
 `joint_state_to_params` decodes it back into arrays.
+
+The `~/bodies/params` schema: the same names for every person of the frame, each
+prefixed with its track ID (``body_<id>/transl.x`` ...), plus one
+``body_<id>/<joint>.confidence`` per fitted joint (body.joint_names, root first; 0-1, how
+well observed pixels and the fit support it). `joint_state_to_bodies` decodes it into
+{id: params}. `~/bodies/tracked` (JointState): ``name`` = the ``body_<id>`` tracked in the
+frame, ``position`` = each one's mean joint confidence.
 """
 from __future__ import annotations
 
@@ -549,16 +556,42 @@ def marker_cdr(marker, xyz: np.ndarray, msgs=None) -> bytes:
                      xyz.tobytes(), one[at + 24:]))
 
 
+def marker_array_cdr(array_msg, blocks: Sequence[np.ndarray], msgs=None) -> bytes:
+    """CDR bytes of a visualization_msgs/MarkerArray whose first len(blocks) markers get
+    `points` = blocks[k] (N_k, 3), spliced in as `marker_cdr` does (each block changes the
+    length by a multiple of 8 bytes, so every later field keeps its alignment)."""
+    f = as_factory(msgs)
+    marks = [tuple(v * (k + 2) for v in _SENTINEL) for k in range(len(blocks))]
+    for m, sent in zip(array_msg.markers, marks):
+        m.points = f.points(np.array([sent]))
+    data = f.serialize(array_msg, 'visualization_msgs/msg/MarkerArray')
+    parts, pos = [], 0
+    for sent, xyz in zip(marks, blocks):
+        at = data.find(struct.pack('<3d', *sent), pos)
+        if at < 0 or data[at - 4:at] != struct.pack('<I', 1):
+            raise RuntimeError('unexpected MarkerArray CDR layout')
+        xyz = np.ascontiguousarray(xyz, dtype='<f8').reshape(-1, 3)
+        parts += [data[pos:at - 4], struct.pack('<I', len(xyz)), xyz.tobytes()]
+        pos = at + 24
+    parts.append(data[pos:])
+    for m in array_msg.markers:
+        m.points = []
+    return b''.join(parts)
+
+
 def skeleton_markers(joints: np.ndarray, parents: Sequence[int], header=None,
                      ns: str = 'skeleton', id: int = 0, lifetime_s: float = 0.5,
                      joint_color=(1.0, 0.2, 0.2, 1.0), bone_color=(0.2, 0.6, 1.0, 1.0),
-                     joint_diameter: float = 0.04, bone_width: float = 0.015, msgs=None):
+                     joint_diameter: float = 0.04, bone_width: float = 0.015, msgs=None,
+                     confidence: np.ndarray | None = None):
     """visualization_msgs/MarkerArray: a SPHERE_LIST of joints (ns '<ns>/joints') and a
     LINE_LIST of bones child-parent (ns '<ns>/bones'), both with marker id `id`.
 
     Args:
         joints: (J, 3) metres.
         parents: (J,) parent index (-1 for the root).
+        confidence: optional (J,) in [0, 1]: each joint's sphere gets alpha
+            0.2 + 0.8 confidence (a joint nothing observed is faint).
     """
     f = as_factory(msgs)
     joints = np.asarray(joints, np.float64)
@@ -571,6 +604,10 @@ def skeleton_markers(joints: np.ndarray, parents: Sequence[int], header=None,
     d = joint_diameter
     sphere = _marker(f, header, f'{ns}/joints', id, 'SPHERE_LIST', joint_color, lifetime_s,
                      scale=(d, d, d), points=f.points(joints))
+    if confidence is not None:
+        c = np.clip(np.asarray(confidence, np.float64).reshape(-1), 0, 1)
+        r, g, b = joint_color[:3]
+        sphere.colors = [_color((r, g, b, 0.2 + 0.8 * float(v)), f) for v in c]
     lines = _marker(f, header, f'{ns}/bones', id, 'LINE_LIST', bone_color, lifetime_s,
                     scale=(bone_width, 0.0, 0.0), points=f.points(segs))
     return f.new('visualization_msgs/msg/MarkerArray', markers=[sphere, lines])
@@ -607,6 +644,126 @@ def params_to_joint_state(person, body, header=None, msgs=None):
                              pose.reshape(-1), shape])
     return f.new('sensor_msgs/msg/JointState', header=make_header(header, f), name=names,
                  position=f.seq(values, np.float64))
+
+
+def bodies_to_joint_state(persons, body, header=None, msgs=None):
+    """All persons of a frame -> one `~/bodies/params` JointState (module docstring)."""
+    f = as_factory(msgs)
+    names, values = [], []
+    joints = _names(body.joint_names)
+    for p in persons:
+        one = params_to_joint_state(p, body, header, msgs=f)
+        pre = f'body_{int(p.track_id)}/'
+        names += [pre + str(n) for n in one.name]
+        values.append(np.asarray(one.position, np.float64))
+        conf = getattr(p, 'joint_confidence', None)
+        conf = np.zeros(len(joints)) if conf is None else np.asarray(conf, np.float64)
+        names += [f'{pre}{j}.confidence' for j in joints]
+        values.append(conf.reshape(-1))
+    v = np.concatenate(values) if values else np.zeros(0)
+    return f.new('sensor_msgs/msg/JointState', header=make_header(header, f), name=names,
+                 position=f.seq(v, np.float64))
+
+
+def joint_state_to_bodies(msg) -> dict[int, dict[str, Any]]:
+    """Decode a `~/bodies/params` JointState: {track ID: the `joint_state_to_params`
+    dict plus joint_confidence (J,) float32 and confidence_joint_names (J,)}."""
+    names = [str(n) for n in msg.name]
+    pos = np.asarray(msg.position, np.float64).reshape(-1)
+    if len(pos) != len(names):
+        raise ValueError(f'JointState has {len(names)} names but {len(pos)} positions')
+    groups: dict[int, tuple[list, list]] = {}
+    for n, v in zip(names, pos):
+        head, sep, rest = n.partition('/')
+        if not sep or not head.startswith('body_') or not head[5:].isdigit():
+            raise ValueError(f'JointState name {n!r} has no body_<id>/ prefix')
+        g = groups.setdefault(int(head[5:]), ([], []))
+        g[0].append(rest)
+        g[1].append(v)
+    out = {}
+    for tid, (ns, vs) in groups.items():
+        conf = [(n[:-len('.confidence')], v) for n, v in zip(ns, vs) if n.endswith('.confidence')]
+        rest = [(n, v) for n, v in zip(ns, vs) if not n.endswith('.confidence')]
+        d = joint_state_to_params(_NamedValues([n for n, _ in rest], [v for _, v in rest]))
+        d['joint_confidence'] = np.array([v for _, v in conf], np.float32)
+        d['confidence_joint_names'] = tuple(n for n, _ in conf)
+        out[tid] = d
+    return out
+
+
+class _NamedValues:
+    """A JointState-like (name, position) pair."""
+
+    def __init__(self, name, position):
+        self.name, self.position = name, position
+
+
+def tracked_ids_msg(persons, header=None, msgs=None):
+    """`~/bodies/tracked`: JointState, name = body_<id> per person, position = its mean
+    joint confidence."""
+    f = as_factory(msgs)
+    conf = [float(np.mean(p.joint_confidence)) if getattr(p, 'joint_confidence', None)
+            is not None else 0.0 for p in persons]
+    return f.new('sensor_msgs/msg/JointState', header=make_header(header, f),
+                 name=[f'body_{int(p.track_id)}' for p in persons],
+                 position=f.seq(np.asarray(conf, np.float64), np.float64))
+
+
+def body_index_image(persons, shape, header=None, msgs=None):
+    """mono8 body index image (the Azure Kinect convention): each person's pixels hold
+    its position in the frame's `~/bodies/tracked` list (0, 1, ...), 255 elsewhere."""
+    idx = np.full(tuple(shape), 255, np.uint8)
+    for k, p in enumerate(persons[:255]):
+        if p.mask is not None and p.mask.shape == idx.shape:
+            idx[p.mask & (idx == 255)] = k
+    return _image_msg(idx, header, 'mono8', as_factory(msgs))
+
+
+def delete_markers(ns_ids: Iterable[tuple[str, int]], header=None, msgs=None) -> list:
+    """visualization_msgs/Marker DELETE actions for (ns, id) pairs."""
+    f = as_factory(msgs)
+    M = f.cls('visualization_msgs/msg/Marker')
+    out = []
+    for ns, i in ns_ids:
+        m = _marker(f, header, ns, i, 'TRIANGLE_LIST', (0, 0, 0, 0), 0.0)
+        m.action = int(M.DELETE)
+        out.append(m)
+    return out
+
+
+def _transform(f: MsgFactory, header, child: str, R: np.ndarray, t: np.ndarray):
+    from scipy.spatial.transform import Rotation
+    q = Rotation.from_matrix(np.asarray(R, np.float64)).as_quat()  # x, y, z, w
+    return f.new('geometry_msgs/msg/TransformStamped', header=make_header(header, f),
+                 child_frame_id=child,
+                 transform=f.new('geometry_msgs/msg/Transform',
+                                 translation=f.new('geometry_msgs/msg/Vector3',
+                                                   x=float(t[0]), y=float(t[1]),
+                                                   z=float(t[2])),
+                                 rotation=f.new('geometry_msgs/msg/Quaternion',
+                                                x=float(q[0]), y=float(q[1]), z=float(q[2]),
+                                                w=float(q[3]))))
+
+
+def body_transforms(track_id: int, rotations: np.ndarray, positions: np.ndarray,
+                    parents: Sequence[int], joint_names: Sequence[str], header=None,
+                    msgs=None) -> list:
+    """geometry_msgs/TransformStamped of one body's TF tree (REP-155 naming): the
+    root joint as `body_<id>` parented to the header's frame, every other joint as
+    `<joint>_<id>` parented to its parent joint's frame, with the joint's rotation
+    (the body model's bone frames) and position."""
+    f = as_factory(msgs)
+    R = np.asarray(rotations, np.float64)
+    x = np.asarray(positions, np.float64)
+    parents = [int(p) for p in np.asarray(parents).reshape(-1)]
+    name = [f'body_{track_id}'] + [f'{j}_{track_id}' for j in list(joint_names)[1:]]
+    out = [_transform(f, header, name[0], R[0], x[0])]
+    for j in range(1, len(parents)):
+        p = parents[j]
+        Rl = R[p].T @ R[j]
+        tl = R[p].T @ (x[j] - x[p])
+        out.append(_transform(f, make_header(header, f, frame_id=name[p]), name[j], Rl, tl))
+    return out
 
 
 def joint_state_to_params(msg) -> dict[str, Any]:

@@ -36,12 +36,12 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 ParameterType, SetParametersResult)
 from diagnostic_msgs.msg import DiagnosticArray
-from sensor_msgs.msg import CameraInfo, Image, JointState
-from visualization_msgs.msg import Marker, MarkerArray
+from sensor_msgs.msg import CameraInfo, Image
 
 from smpl_depth_ros.config import FitConfig, PipelineConfig
 from smpl_depth_ros.sensor_noise import check_sensor, sensor_choices
 from smpl_depth_ros.ros import adapters as A
+from smpl_depth_ros.ros.outputs import OUTPUT_PARAMS, TOPICS, FrameOutputs, OutputOptions
 from smpl_depth_ros.ros.runner import ros_args, run_nodes
 from smpl_depth_ros.types import InputError
 
@@ -130,12 +130,7 @@ _NODE_PARAMS = {
     'qos_depth': (1, 'input QoS history depth'),
     'cpu_threads': (1, 'torch CPU threads (0 = torch default); 1 is fastest beside a 30 Hz '
                     'DDS stream on a 2-core machine'),
-    'publish_mesh': (True, 'publish ~/mesh'),
-    'publish_segmentation': (True, 'publish ~/segmentation and ~/segmentation/labels'),
-    'publish_params': (True, 'publish ~/smpl_params'),
-    'publish_skeleton': (True, 'publish ~/skeleton'),
-    'mesh_decimation': (1.0, 'fraction of mesh triangles sent in ~/mesh (1 = full mesh)'),
-    'mesh_lifetime_s': (0.5, 'lifetime of the mesh and skeleton markers (0 = forever)'),
+    **OUTPUT_PARAMS,
     'diagnostics_period_s': (1.0, 'period of the /diagnostics summary (s)'),
     'warn_throttle_s': (5.0, 'per-problem throttle of warnings (s)'),
 }
@@ -384,15 +379,19 @@ class ReconstructorNode(Node):
         self._first_result_s: float | None = None
         self._prev = (time.monotonic(), 0, 0)     # diagnostics rate window
         self._pending_config: PipelineConfig | None = None
-        self._faces_cache: tuple[float, np.ndarray] | None = None
         self._errors_prev = 0
 
         # Publishers first (outputs), then the core, then the inputs.
-        self._pub_mesh = self.create_publisher(Marker, '~/mesh', 5)
-        self._pub_seg = self.create_publisher(Image, '~/segmentation', 5)
-        self._pub_labels = self.create_publisher(Image, '~/segmentation/labels', 5)
-        self._pub_params = self.create_publisher(JointState, '~/smpl_params', 5)
-        self._pub_skel = self.create_publisher(MarkerArray, '~/skeleton', 5)
+        self._pubs = {}
+        for key, (topic, msgtype) in TOPICS.items():
+            try:
+                cls = A.as_factory().cls(msgtype)
+            except ImportError:  # tf2_msgs is not installed (a bare rclpy venv)
+                log.warning(f'{msgtype} is not installed: {topic} is not published')
+                continue
+            self._pubs[key] = self.create_publisher(
+                cls, topic if topic.startswith('/') else f'~/{topic}',
+                100 if key == 'tf' else 5)  # tf2_ros' TransformBroadcaster keeps 100
         self._pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
 
         self._config = config_from_values(self._values)
@@ -415,8 +414,9 @@ class ReconstructorNode(Node):
         # frame's many small objects stay short (fewer latency spikes).
         gc.collect()
         gc.freeze()
-        self._parents = np.asarray(self._body.joint_parents.cpu() if hasattr(
-            self._body.joint_parents, 'cpu') else self._body.joint_parents).reshape(-1)
+        self._outputs = FrameOutputs(self._body, self._rec.fitter.joint_frames,
+                                     OutputOptions.from_values(self._values),
+                                     has_tf='tf' in self._pubs)
         log.info(f'loaded {self._body.name} body model ({self._body.num_vertices} vertices, '
                  f'{len(self._body.faces)} triangles) and network on {self._rec.device} in '
                  f'{time.monotonic() - t0:.2f} s')
@@ -587,47 +587,20 @@ class ReconstructorNode(Node):
                     return
                 self._report(InputError('publish', f'{type(e).__name__}: {e}'), frame.header)
 
-    def _mesh_faces(self) -> np.ndarray:
-        frac = float(self._values['mesh_decimation'])
-        faces = self._body.faces_numpy()
-        if frac >= 1.0:
-            return faces
-        if self._faces_cache is None or self._faces_cache[0] != frac:
-            import torch
-            p = self._body.zero_params(1)
-            with torch.no_grad():
-                rest = self._body(**p).vertices[0].cpu().numpy()
-            target = max(1, int(round(frac * len(faces))))
-            self._faces_cache = (frac, A.decimate_faces(rest, faces, target))
-        return self._faces_cache[1]
-
     def _publish_result(self, result, frame: Frame):
-        v = self._values
         header = frame.header
-        published = False
-        if v['publish_segmentation']:
-            rgb, ids = A.labels_to_image_msgs(result.labels, header)
-            self._pub_seg.publish(rgb)
-            self._pub_labels.publish(ids)
-            published = True
         persons = list(result.persons)[:max(1, self._config.max_persons)]
         if not persons:
             self._report(InputError('no_person', 'no person found between depth_min='
                                     f'{self._config.depth_min} m and depth_max='
                                     f'{self._config.depth_max} m'), header)
-        lifetime = float(v['mesh_lifetime_s'])
-        for i, person in enumerate(persons):
-            if v['publish_mesh']:  # serialised with the points as one block (faster)
-                empty = A.mesh_marker(np.zeros((0, 3)), np.zeros((0, 3), np.int64), header,
-                                      id=i, lifetime_s=lifetime)
-                self._pub_mesh.publish(A.marker_cdr(
-                    empty, person.vertices[self._mesh_faces().reshape(-1)]))
-            if v['publish_skeleton']:
-                self._pub_skel.publish(A.skeleton_markers(person.joints, self._parents,
-                                                          header, id=i, lifetime_s=lifetime))
-            if i == 0 and v['publish_params']:
-                self._pub_params.publish(A.params_to_joint_state(person, self._body, header))
-            published = True
+        self._outputs.opts = OutputOptions.from_values(self._values)
+        published = False
+        for key, msg in self._outputs.build(result, persons, header):
+            pub = self._pubs.get(key)
+            if pub is not None:
+                pub.publish(msg)  # rclpy publishers take CDR bytes as they are
+                published = True
         now_ns = self.get_clock().now().nanoseconds
         with self._lock:
             self._stats['processed'] += 1
