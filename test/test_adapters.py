@@ -408,3 +408,85 @@ def test_cdr_stamp_ns_reads_the_header_of_serialized_messages(msgs, anny, anny_p
         assert A.cdr_stamp_ns(msgs.serialize(m, t)) == 1_700_000_123_000_000_042
     with pytest.raises(ValueError):
         A.cdr_stamp_ns(b'\x00')
+
+
+@pytest.mark.parametrize('kind', ['rosbags', 'rclpy'])
+def test_marker_array_cdr_equals_full_serialisation(kind):
+    f = A.rosbags_factory() if kind == 'rosbags' else A.as_factory(None)
+    rng = np.random.default_rng(0)
+    blocks = [rng.normal(size=(n, 3)) for n in (5, 0, 301)]
+    h = A.make_header(None, f, stamp_ns=5, frame_id='cam')
+    marks = [A.mesh_marker(np.zeros((0, 3)), np.zeros((0, 3), np.int64), h, id=i, msgs=f)
+             for i in range(3)] + A.delete_markers([('body_mesh', 9)], h, msgs=f)
+    arr = f.new('visualization_msgs/msg/MarkerArray', markers=marks)
+    fast = A.marker_array_cdr(arr, blocks, f)
+    for m, b in zip(arr.markers, blocks):
+        m.points = f.points(b)
+    full = f.serialize(arr, 'visualization_msgs/msg/MarkerArray')
+    if kind == 'rosbags':
+        assert fast == full
+    ts = A.rosbags_factory().typestore
+    back, ref = (ts.deserialize_cdr(b, 'visualization_msgs/msg/MarkerArray')
+                 for b in (fast, full))
+    assert [len(m.points) for m in back.markers] == [5, 0, 301, 0]
+    assert [m.points for m in back.markers] == [m.points for m in ref.markers]
+    assert [(m.id, m.action, m.ns) for m in back.markers] == \
+        [(m.id, m.action, m.ns) for m in ref.markers]
+
+
+@pytest.mark.parametrize('kind', ['rosbags', 'rclpy'])
+def test_bodies_params_round_trip_with_ids_and_confidence(anny, kind):
+    from types import SimpleNamespace
+    f = SYSTEMS[kind]
+    rng = np.random.default_rng(1)
+    P, S, J = anny.num_pose_joints, anny.num_shape, len(anny.joint_names)
+    persons = [SimpleNamespace(
+        params=BodyParams(pose=rng.normal(size=(P, 3)).astype(np.float32),
+                          shape=rng.normal(size=S).astype(np.float32),
+                          global_orient=rng.normal(size=3).astype(np.float32),
+                          transl=rng.normal(size=3).astype(np.float32)),
+        track_id=tid, joint_confidence=rng.uniform(size=J).astype(np.float32))
+        for tid in (3, 11)]
+    msg = wire(A.bodies_to_joint_state(persons, anny, msgs=f), f)
+    back = A.joint_state_to_bodies(msg)
+    assert sorted(back) == [3, 11]
+    for p in persons:
+        b = back[p.track_id]
+        np.testing.assert_allclose(b['pose'], p.params.pose, atol=1e-6)
+        np.testing.assert_allclose(b['transl'], p.params.transl, atol=1e-6)
+        np.testing.assert_allclose(b['joint_confidence'], p.joint_confidence, atol=1e-6)
+        assert b['confidence_joint_names'] == tuple(anny.joint_names)
+    tracked = wire(A.tracked_ids_msg(persons, msgs=f), f)
+    assert list(tracked.name) == ['body_3', 'body_11']
+    with pytest.raises(ValueError):
+        A.joint_state_to_bodies(wire(A.params_to_joint_state(persons[0], anny, msgs=f), f))
+
+
+def test_body_transforms_rebuild_the_joint_positions(anny):
+    """Chaining each joint frame's transform from the camera gives back the joint's
+    position and rotation."""
+    from scipy.spatial.transform import Rotation
+    rng = np.random.default_rng(2)
+    J = len(anny.joint_names)
+    R = Rotation.random(J, random_state=3).as_matrix()
+    x = rng.normal(size=(J, 3))
+    parents = anny.joint_parents.numpy()
+    tfs = A.body_transforms(4, R, x, parents, anny.joint_names, msgs=ROSBAGS,
+                            header=A.make_header(None, ROSBAGS, frame_id='cam'))
+    by = {t.child_frame_id: t for t in tfs}
+    names = ['body_4'] + [f'{n}_4' for n in anny.joint_names[1:]]
+    world = {'cam': (np.eye(3), np.zeros(3))}
+
+    def pose_of(name):
+        if name not in world:
+            t = by[name]
+            Rp, xp = pose_of(t.header.frame_id)
+            q, v = t.transform.rotation, t.transform.translation
+            Rl = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
+            world[name] = (Rp @ Rl, xp + Rp @ np.array([v.x, v.y, v.z]))
+        return world[name]
+
+    for j, n in enumerate(names):
+        Rw, xw = pose_of(n)
+        np.testing.assert_allclose(xw, x[j], atol=1e-9)
+        np.testing.assert_allclose(Rw, R[j], atol=1e-9)

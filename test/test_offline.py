@@ -514,3 +514,41 @@ def test_ctrl_c_while_the_model_loads_leaves_nothing(tmp_path):
     assert proc.wait(60) == offline.EXIT_INTERRUPTED, err
     assert 'Traceback' not in err and 'interrupted while loading the model' in err, err
     assert not out.exists()
+
+
+def test_two_people_get_tf_trees_and_stable_ids_in_the_output_bag(tmp_path):
+    """A two-person sequence (synth_bag --persons 2): the output bag's /tf holds, per
+    frame, the body_<id> frame of each person (parented to the camera frame, at the
+    fitted pelvis) and its joint frames; the IDs stay the same through the sequence and
+    are those of ~/bodies/tracked."""
+    import contextlib
+    import io
+    from smpl_depth_ros.tools import synth_bag
+    bag = tmp_path / 'two'
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert synth_bag.main(['--out', str(bag), '--frames', '5', '--seed', '5',
+                               '--sequence', '--persons', '2']) == 0
+        assert main([str(bag), '--out', str(tmp_path / 'out'), '--device', 'cpu',
+                     '--quiet', '-p', 'max_persons=3']) == 0
+    gt = np.load(synth_bag.gt_path(bag))
+    out = read_decoded(tmp_path / 'out' / 'bag')
+    tf, tracked = out['/tf'], out['/reconstructor/bodies/tracked']
+    assert len(tf) == len(tracked) == 5
+    ids0 = sorted(str(n) for n in tracked[0][1].name)
+    assert len(ids0) == 2
+    for (t, msg), (_, tr) in zip(tf, tracked):
+        names = sorted(str(n) for n in tr.name)
+        assert names == ids0
+        frames = {x.child_frame_id: x for x in msg.transforms}
+        for b in names:
+            root = frames[b]
+            assert root.header.frame_id == FRAME
+            tid = b[len('body_'):]
+            assert frames[f'head_{tid}'].header.frame_id == f'neck_{tid}'
+            assert frames[f'left_hip_{tid}'].header.frame_id == b
+        # each body frame sits at one true pelvis (within 15 cm)
+        i = list(gt['stamps']).index(t)
+        for b in names:
+            p = frames[b].transform.translation
+            d = np.linalg.norm(gt['joints'][i][:, 0] - [p.x, p.y, p.z], axis=1)
+            assert d.min() < 0.15, d

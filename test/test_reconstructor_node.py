@@ -45,7 +45,8 @@ REPO = Path(__file__).resolve().parents[1]
 PARAMS_FILE = REPO / 'config' / 'reconstructor.yaml'
 FRAME = 'camera_depth_optical_frame'
 OUTPUTS = {'mesh': Marker, 'segmentation': Image, 'segmentation/labels': Image,
-           'smpl_params': JointState, 'skeleton': MarkerArray}
+           'smpl_params': JointState, 'skeleton': MarkerArray, 'meshes': MarkerArray,
+           'bodies/params': JointState, 'bodies/tracked': JointState, 'bodies/index': Image}
 
 
 # -- synthetic frames ------------------------------------------------------------------
@@ -351,6 +352,58 @@ def test_outputs_copy_header_and_match_model(harness, core, scene):
     assert kinds == sorted([Marker.SPHERE_LIST, Marker.LINE_LIST])
     joints = next(mk for mk in skel.markers if mk.type == Marker.SPHERE_LIST)
     assert len(joints.points) == len(body.joint_names)
+
+
+def test_two_people_keep_their_ids_and_a_person_leaving_is_deleted(harness, core, scene):
+    """Two people walking in view (synth.dataset.make_multi_sequence), then one of them
+    gone: every output carries the track IDs, which stay the same; the tracked list, the
+    ID-prefixed parameters and the body index image agree; the person who left gets
+    DELETE markers."""
+    from smpl_depth_ros.synth.dataset import make_multi_sequence
+    from smpl_depth_ros.synth.poses import PoseSampler
+    body = core.body
+    frames = list(make_multi_sequence(body, PoseSampler(body), np.random.default_rng(5),
+                                      scene.camera, 6, 2))
+    gone = frames[-1]['person_index'] == 1  # the last frame without the second person
+    frames.append(dict(frames[-1], depth=np.where(gone, 0, frames[-1]['depth'])))
+    node, tester = harness(max_persons=3)
+    core.set_config(core.config.with_overrides(max_persons=3))  # the shared core
+    got = []
+    for i, f in enumerate(frames):
+        stamp = tester.now_ns()
+        msg = A.depth_to_image_msg(f['depth'], A.make_header(stamp_ns=stamp, frame_id=FRAME),
+                                   '16UC1')
+        tester.pub_depth.publish(msg)
+        assert wait_for(lambda: all(tester.with_stamp(k, stamp) for k in (
+            'bodies/tracked', 'bodies/params', 'bodies/index', 'meshes', 'skeleton')),
+            30.0), f'frame {i}: no outputs'
+        got.append({k: tester.with_stamp(k, stamp)[0] for k in (
+            'bodies/tracked', 'bodies/params', 'bodies/index', 'meshes', 'skeleton')})
+    ids = [[str(n) for n in g['bodies/tracked'].name] for g in got]
+    assert all(len(x) == 2 for x in ids[:-1]) and len(ids[-1]) == 1, ids
+    assert all(sorted(x) == sorted(ids[0]) for x in ids[1:-1]), ids  # stable
+    left = (set(ids[0]) - set(ids[-1])).pop()
+    for g, names in zip(got, ids):
+        bodies = A.joint_state_to_bodies(g['bodies/params'])
+        assert sorted(f'body_{k}' for k in bodies) == sorted(names)
+        for b in bodies.values():
+            assert b['pose'].shape == (body.num_pose_joints, 3)
+            assert b['joint_confidence'].shape == (len(body.joint_names),)
+        index = A.image_to_array(g['bodies/index'])
+        assert set(np.unique(index)) <= set(range(len(names))) | {255}
+        assert all((index == k).sum() > 500 for k in range(len(names)))
+        mesh_ids = {m.id for m in g['meshes'].markers if m.action == Marker.ADD}
+        assert mesh_ids == {int(n[5:]) for n in names}
+    # index k is the k-th tracked person: its pixels are that person's in the truth
+    f0, idx0 = frames[0], A.image_to_array(got[0]['bodies/index'])
+    for k in range(2):
+        truth = np.bincount(f0['person_index'][idx0 == k] + 1, minlength=3)[1:]
+        assert truth.max() > 0.8 * (idx0 == k).sum()
+    last = got[-1]
+    deleted = {(m.ns, m.id) for m in last['meshes'].markers + last['skeleton'].markers
+               if m.action == Marker.DELETE}
+    lid = int(left[5:])
+    assert deleted == {('body_mesh', lid), ('skeleton/joints', lid), ('skeleton/bones', lid)}
 
 
 def test_burst_against_slow_worker(harness, core, scene):
