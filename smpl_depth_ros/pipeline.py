@@ -34,6 +34,8 @@ PLANE_M = 0.02  # 'model' labels: pixels this near a scene plane (the floor unde
                 # are not taken into the person by the margin (val_s2 mIoU 0.847 -> 0.856)
 MODEL_LABEL_POINTS = 8000  # segmentation 'model': pixels labelled per person, at most ~
 SAME_SURFACE_M = 0.03  # ... the others take their cell's part when this close in depth
+MIN_BEHIND = 0.3  # a blob behind a person is a tracked one with this share of its pixels
+MAX_CLAIMED = 0.5  # a further person: at most this share of its pixels an earlier one's
 CONF_POINTS = 15.0  # joint_confidence: pixels for a joint's support to count as ample
 CONF_RESIDUAL_M = 0.06  # joint_confidence: residual scale (widened for sensor noise)
 AUTO_FIRST = 10  # sensor 'auto': the noise is measured on each of the first frames ...
@@ -315,6 +317,7 @@ class Reconstructor:
         seen = set() if seen is None else seen
         t = self._clock(stamp_ns)
         persons = []
+        claimed = np.zeros(d.shape, bool)  # pixels of the persons reconstructed so far
         split_done: set[int] = set()  # halves of split candidates are not split again
         plain_retried: set[int] = set()  # flip_tta: candidates retried on the plain pass
         x, lab, coords = [], [], []  # network inputs and outputs, per candidate so far
@@ -338,11 +341,13 @@ class Reconstructor:
                 lab.extend(lb)
                 coords.extend(cb)
                 timings['network'] += (time.perf_counter() - tn) * 1e3
-            if crop.behind and persons and track_of.get(id(crop)) is None:
+            tr = track_of.get(id(crop))
+            if crop.behind and persons and (tr is None or tr.mask is None or
+                                            crop.mask.sum() < MIN_BEHIND * tr.mask.sum()):
                 # Seen through a gap of a nearer candidate that is a person: the background
                 # between its legs, or a part of someone it hides; fitted alone, a crouching
-                # body would be made up for it. Unless it is where a tracked person was:
-                # someone walking behind another.
+                # body would be made up for it. Unless it is a tracked person, most of
+                # whom is still in view: someone walking behind another.
                 continue
             if i in plain:  # ranked on the plain pass: add the mirrored one (flip_tta)
                 tn = time.perf_counter()
@@ -362,6 +367,10 @@ class Reconstructor:
             vids = self.net.lookup(lab[i], coords[i], fg)
             rr, cc, _ = crop.sample_indices(d.shape)
             r, c = rr[fg], cc[fg]
+            if persons and np.mean(claimed[r, c]) > MAX_CLAIMED:
+                # Mostly pixels of a person already reconstructed (another blob of the
+                # same body: a limb split off, the far side of a gap): not a new person.
+                continue
             pts = pixel_points(r, c, d[r, c], K).astype(np.float32)
             tf = time.perf_counter()
             timings['correspondence'] += (tf - tc) * 1e3
@@ -433,6 +442,7 @@ class Reconstructor:
             timings['labels'] += (time.perf_counter() - tl) * 1e3
             seen.add(id(track))
             Tracker.seen(track, fit.joints[0], t, mask)
+            claimed |= mask
             conf = joint_confidence(self.fitter.rig.segment_of_vertex, vids,
                                     np.linalg.norm(fit.vertices[vids] - pts, axis=1),
                                     self._joint_adjacency,
