@@ -454,7 +454,8 @@ class Reconstructor:
                 mask=mask, residual_m=fit.median_residual, num_points=int(len(pts)),
                 tracked=tracked, pixels=np.stack([r, c], 1), vertex_ids=vids, crop=crop,
                 crop_labels=np.where(x[i][1] > 0, lab[i], 0).astype(np.uint8),
-                track_id=track.id, joint_confidence=conf))
+                track_id=track.id, joint_confidence=conf,
+                score=body_score(crop, x[i][1] > 0, lab[i], d.shape)))
         return persons
 
     def _rank_candidates(self, d, crops, timings):

@@ -48,6 +48,8 @@ class PersonResult:
         track_id: the person's stable ID (>= 1; tracking.Tracker), -1 if untracked.
         joint_confidence: (J,) float32 in [0, 1] per joint of `joints`: how well observed
             pixels and the fit support it (pipeline.joint_confidence).
+        score: how much of a body the network sees in its blob (pipeline.body_score:
+            the share labelled body times the parts covering >= 2 % of it; 0-14).
     """
 
     params: BodyParams
@@ -64,6 +66,7 @@ class PersonResult:
     crop_labels: np.ndarray | None = None
     track_id: int = -1
     joint_confidence: np.ndarray | None = None
+    score: float = 0.0
 
 
 @dataclass
