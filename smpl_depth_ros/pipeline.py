@@ -154,7 +154,6 @@ class Reconstructor:
         if check_sensor(config.sensor):
             raise ValueError(check_sensor(config.sensor))
         self.device = resolve_device(config.device)
-        torch.set_grad_enabled(True)
         self.body = body if body is not None else load_body_model(
             config.backend, config.model_path or None, device=self.device)
         self.net = CorrespondenceNet(self.body, config.weights_path, device=self.device)

@@ -26,6 +26,7 @@ Two solvers minimise the same objective (fit.objective):
 """
 from __future__ import annotations
 
+import contextlib
 import copy
 import time
 from dataclasses import dataclass
@@ -313,15 +314,24 @@ def vertex_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
 
 
-def _single_threaded_blas() -> None:
-    """The fast solver makes many small BLAS calls between torch calls; OpenBLAS's worker
-    threads then fight torch's OpenMP threads for the cores and every call waits
-    (measured: 15x slower on 2 cores). One BLAS thread is the fastest at these sizes."""
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # optional: only speed depends on it
-        return
-    threadpool_limits(1, user_api='blas')
+_BLAS = []  # [threadpoolctl.ThreadpoolController or None], made on first use
+
+
+def _single_threaded_blas():
+    """A context in which BLAS runs one thread: the fast solver makes many small BLAS calls
+    between torch calls; OpenBLAS's worker threads then fight torch's OpenMP threads for
+    the cores and every call waits (measured: 15x slower on 2 cores). One BLAS thread is
+    the fastest at these sizes. Scoped to the fit: the rest of the process keeps its own
+    BLAS settings."""
+    if not _BLAS:
+        try:
+            from threadpoolctl import ThreadpoolController
+            _BLAS.append(ThreadpoolController())
+        except ImportError:  # optional: only speed depends on it
+            _BLAS.append(None)
+    if _BLAS[0] is None:
+        return contextlib.nullcontext()
+    return _BLAS[0].limit(limits=1, user_api='blas')
 
 
 class Fitter:
@@ -336,7 +346,6 @@ class Fitter:
         self.body = body
         self.cfg = cfg
         self.rig = _Rig(body)
-        _single_threaded_blas()
         self._rest_cache: dict[bytes, tuple] = {}
         self._rng = np.random.default_rng(0)
         # Rest vertices at the mean shape: the template for the target consistency check.
@@ -474,11 +483,16 @@ class Fitter:
         return rot, transl, shape
 
     # ------------------------------------------------------------------ API
-    def fit(self, points, vertex_ids, init: BodyParams | None = None, *,
-            solver: str | None = None, iterations: int | None = None,
-            fix_shape: bool | None = None, weights=None,
-            targets_are_joints: bool = False, free_space: FreeSpace | None = None,
-            temporal_weight: float = 0.0, tangent_weight: float | None = None) -> FitResult:
+    def fit(self, points, vertex_ids, init: BodyParams | None = None, **kw) -> FitResult:
+        """Fit to points with correspondences (see `_fit`; BLAS single-threaded inside)."""
+        with _single_threaded_blas():
+            return self._fit(points, vertex_ids, init, **kw)
+
+    def _fit(self, points, vertex_ids, init: BodyParams | None = None, *,
+             solver: str | None = None, iterations: int | None = None,
+             fix_shape: bool | None = None, weights=None,
+             targets_are_joints: bool = False, free_space: FreeSpace | None = None,
+             temporal_weight: float = 0.0, tangent_weight: float | None = None) -> FitResult:
         """Fit to points with correspondences.
 
         Args:
@@ -902,7 +916,8 @@ class Fitter:
             en = objective.energy(body, p, pts_t, ids_t, cfg, wts_t, joints)['total']
             en.backward()
             return en
-        opt.step(closure)
+        with torch.enable_grad():  # whatever the caller's grad mode
+            opt.step(closure)
         n_iter = opt.state[opt._params[0]].get('n_iter', iterations)
         f = {k: v.detach().cpu().double().numpy()[0] for k, v in p.items()}
         rot = _rodrigues(np.concatenate([f['global_orient'][None], f['pose']]))
