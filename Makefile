@@ -24,9 +24,10 @@ install: $(STAMP)
 demo: install
 	$(BIN)/python -m smpl_depth_ros.tools.demo --out $(OUT)
 
-# The colcon workspace check first (colcon build, --symlink-install, colcon test on a
+# Lint (ruff.toml), then the colcon workspace check (colcon build, --symlink-install, colcon test on a
 # subset), then the whole suite (pytest's summary is the last line).
 test: install
+	$(BIN)/ruff check smpl_depth_ros test resource/launchers setup.py
 	VENV=$(VENV) bash test/colcon_workspace.sh
 	$(BIN)/python -m pytest -q test
 

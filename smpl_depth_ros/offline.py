@@ -30,11 +30,12 @@ processed or skipped with a reason ('no_camera_info', 'no_person', 'encoding',
 Real bags: header stamps may go backwards (tracking is reset) or repeat (processed, marked
 ``duplicate``); depth frames that arrive before the first camera_info of their frame_id
 wait for it (up to `MAX_WAITING_FOR_INFO` frames, then the oldest is skipped as
-'no_camera_info', as is any still waiting at the end of the bag); unknown topics are copied through; a truncated or corrupt bag
-stops the run with an error naming the file and the position, keeping everything read
-before it (the readable part of a truncated MCAP or sqlite3 file is recovered) and closing
-the output bag properly. Exit codes: 0 done, 1 unusable input or options, 3 the bag is
-damaged (partial results written), 130 interrupted (partial results written).
+'no_camera_info', as is any still waiting at the end of the bag); unknown topics are
+copied through; a truncated or corrupt bag stops the run with an error naming the file
+and the position, keeping everything read before it (the readable part of a truncated
+MCAP or sqlite3 file is recovered) and closing the output bag properly. Exit codes: 0
+done, 1 unusable input or options, 3 the bag is damaged (partial results written), 130
+interrupted (partial results written).
 
 `--workers N` runs N processes, each with its own Reconstructor, on contiguous chunks of
 frames (tracking restarts at each chunk); the output keeps the input order.

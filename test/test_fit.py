@@ -326,8 +326,8 @@ def test_free_space_moves_an_unseen_arm_out_of_sight(body):
 
 def test_temporal_prior_holds_a_track_against_noisy_correspondences(body):
     """Tracking's temporal prior: warm-started at the true pose, a frame whose
-    correspondences are half wrong (scattered over the body), with 1 cm noise, pulls the fit away; with
-    a strong lambda_temporal the fit stays nearer the truth; with the default one, a
+    correspondences are half wrong (scattered over the body), with 1 cm noise, pulls the
+    fit away; with a strong lambda_temporal the fit stays nearer the truth; with the default one, a
     genuine move of the body (1 cm, 10 deg of turn) is still followed to within a few
     millimetres."""
     rng, V, _, front = _scene(body, 5)

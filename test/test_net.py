@@ -39,9 +39,9 @@ def test_shipped_weights_are_small_and_useful(body):
     assert net.meta['kind'] == 'double' and net.meta['body_vertices'] == body.num_vertices
     x, labels, coords, cm = make_fixed_set(body, 12, seed=4242)
     lab, co = net.predict(x.numpy())
-    l = labels.numpy()
-    ious = [((lab == c) & (l == c)).sum() / max(((lab == c) | (l == c)).sum(), 1)
-            for c in range(1, 15) if (l == c).any()]
+    gt = labels.numpy()
+    ious = [((lab == c) & (gt == c)).sum() / max(((lab == c) | (gt == c)).sum(), 1)
+            for c in range(1, 15) if (gt == c).any()]
     assert np.mean(ious) > 0.6, np.mean(ious)
     m = cm.numpy()
     err = np.linalg.norm(co.transpose(0, 2, 3, 1)[m] - coords.numpy().transpose(0, 2, 3, 1)[m],

@@ -238,21 +238,21 @@ def test_messy_bag(core, seq_msgs, tmp_path):
         np.zeros((240, 320), np.uint8), A.make_header(stamp_ns=depth[2][0] + ms,
                                                       frame_id=FRAME, msgs=f), msgs=f)[1],
         'sensor_msgs/msg/Image')
-    I, D = 'sensor_msgs/msg/CameraInfo', 'sensor_msgs/msg/Image'
+    CI, D = 'sensor_msgs/msg/CameraInfo', 'sensor_msgs/msg/Image'
     C = 'my_pkg/msg/Custom'
     msgs = [
         (DEPTH, D, depth[0][0], depth[0][1]),                       # 0: waits for its info
         ('/extra', C, depth[0][0] + 1, bytes(store.serialize_cdr(custom(a=1, b='x'), C))),
-        (INFO, I, info[1][0], info[1][1]),
+        (INFO, CI, info[1][0], info[1][1]),
         (DEPTH, D, depth[1][0], depth[1][1]),                       # 1: ok
-        (INFO, I, info[2][0], info[2][1]),
+        (INFO, CI, info[2][0], info[2][1]),
         (DEPTH, D, depth[2][0], depth[2][1]),                       # 2: ok
         (DEPTH, D, depth[2][0] + ms, depth[2][1]),                  # 3: duplicate stamp
         (DEPTH, D, depth[2][0] + 2 * ms, b'\x00\x01\x00\x00garbage'),  # 4: undecodable
         (DEPTH, D, depth[2][0] + 3 * ms, bytes(mono)),              # 5: mono8
         ('/extra', C, depth[2][0] + 4 * ms, bytes(store.serialize_cdr(custom(a=2, b='y'),
                                                                         C))),
-        (INFO, I, info[3][0], info[3][1]),
+        (INFO, CI, info[3][0], info[3][1]),
         (DEPTH, D, depth[3][0], depth[3][1]),                       # 6: ok
         (DEPTH, D, depth[3][0] + ms, depth[1][1]),                  # 7: backwards + dup
     ]

@@ -133,7 +133,8 @@ class BodyModel(torch.nn.Module):
         """
         B = pose.shape[0]
         if pose.shape[1:] != (self.num_pose_joints, 3):
-            raise ValueError(f'pose must be (B, {self.num_pose_joints}, 3), got {tuple(pose.shape)}')
+            raise ValueError(f'pose must be (B, {self.num_pose_joints}, 3), '
+                             f'got {tuple(pose.shape)}')
         if shape.shape != (B, self.num_shape):
             raise ValueError(f'shape must be (B, {self.num_shape}), got {tuple(shape.shape)}')
         z = pose.new_zeros(B, 3)
@@ -165,7 +166,6 @@ class BodyModel(torch.nn.Module):
         piece of anny's phenotype mapping. Default: one-sided finite differences, batched.
         """
         eps = 1e-3
-        S = shape.shape[1]
         lo_hi = self.shape_bounds
         s0 = shape[0]
         step = torch.full_like(s0, eps)

@@ -19,8 +19,9 @@ pixel counts such as min_pixels scale by 1 / s^2); boxes and masks are full-imag
 4. A candidate's mask: its blob's s x s pixel blocks, grown by ~GROW_PX pixels, where the
    depth is valid and within GROW_DEPTH of the blob's median depth.
 5. Candidates sorted most central first (distance of the blob centroid to the image
-   centre), those seen through a gap of a nearer candidate (`Crop.behind`) last; each gets a square crop (1.15 x the larger bbox side) resampled
-   (nearest neighbour) to INPUT_SIZE x INPUT_SIZE.
+   centre), those seen through a gap of a nearer candidate (`Crop.behind`) last; each
+   gets a square crop (1.15 x the larger bbox side) resampled (nearest neighbour) to
+   INPUT_SIZE x INPUT_SIZE.
 6. Network input: channel 0 = (depth - person median) / 0.5 m for valid pixels within
    +-1 m of the median (0 elsewhere), channel 1 = that validity mask.
 

@@ -292,11 +292,12 @@ def make_multi_sequence(body: BodyModel, sampler: PoseSampler, rng: np.random.Ge
     """Several people walking across one static camera's view, `frames` frames.
 
     Each person keeps to a lane at its own depth (lanes at least 0.6 m apart, from where
-    whole bodies fit in the view to 4.5 m, so nobody walks through anybody), walks along it at 0.3-0.9 m/s facing roughly where it
-    goes, and moves its limbs as `PoseSampler.sequence`; lanes run in both directions, so
-    people cross in front of each other (occlusions), and start or end outside the view
-    (people entering and leaving). One floor under everybody, the camera 0.85-1.05 m above
-    it; camera tilt and shapes are fixed per sequence. With frames=1 this is one multi-person scene.
+    whole bodies fit in the view to 4.5 m, so nobody walks through anybody), walks along
+    it at 0.3-0.9 m/s facing roughly where it goes, and moves its limbs as
+    `PoseSampler.sequence`; neighbouring lanes run in opposite directions, so people cross
+    in front of each other (occlusions), and start or end outside the view (people
+    entering and leaving). One floor under everybody, the camera 0.85-1.05 m above it;
+    camera tilt and shapes are fixed per sequence. With frames=1 this is one scene.
 
     Args:
         body, sampler, rng, camera, noise, background, params: as for `make_sequence`.

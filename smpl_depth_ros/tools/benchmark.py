@@ -134,7 +134,8 @@ def bench_net(args) -> dict:
             tl.append((time.perf_counter() - t2) * 1e3)
             tn.append((t1 - t0) * 1e3)
             tt.append((t2 - t1) * 1e3)
-        out[kind] = dict(net_ms_median=float(np.median(tn)), net_ms_p95=float(np.percentile(tn, 95)),
+        out[kind] = dict(net_ms_median=float(np.median(tn)),
+                         net_ms_p95=float(np.percentile(tn, 95)),
                          net_tta_ms_median=float(np.median(tt)),
                          net_tta_ms_p95=float(np.percentile(tt, 95)),
                          lookup_ms_median=float(np.median(tl)),

@@ -225,11 +225,13 @@ def main(argv=None) -> int:
                weights=args.weights or 'shipped', flip_tta=cfg.flip_tta,
                params=overrides,
                body_model=body.name, ablation=table)
-    print(f'{"method":18s} {"PVE mm":>8s} {"PVE p50":>8s} {"PA-PVE":>8s} {"MPJPE":>8s} {"mIoU":>6s} '
+    print(f'{"method":18s} {"PVE mm":>8s} {"PVE p50":>8s} {"PA-PVE":>8s} {"MPJPE":>8s} '
+          f'{"mIoU":>6s} '
           f'{"mIoU@net":>8s} {"mIoU@128":>8s} {"mIoU fit":>8s} '
           f'{"corr cm":>8s} {"net ms":>7s} {"fit ms":>7s} {"fail":>5s}')
     for k, v in table.items():
-        print(f'{k:18s} {v["pve_mm"]:8.1f} {v["pve_mm_median"]:8.1f} {v["pa_pve_mm"]:8.1f} {v["mpjpe_mm"]:8.1f} '
+        print(f'{k:18s} {v["pve_mm"]:8.1f} {v["pve_mm_median"]:8.1f} {v["pa_pve_mm"]:8.1f} '
+              f'{v["mpjpe_mm"]:8.1f} '
               f'{v.get("miou", float("nan")):6.3f} {v.get("miou_net_res", float("nan")):8.3f} '
               f'{v.get("miou_crop", float("nan")):8.3f} '
               f'{v.get("miou_model", float("nan")):8.3f} '
