@@ -47,7 +47,7 @@ setup(
     ],
     install_requires=['setuptools', 'numpy', 'scipy', 'torch', 'trimesh', 'rosbags',
                       'anny', 'safetensors', 'tqdm', 'pillow', 'roma', 'threadpoolctl'],
-    extras_require={'test': ['pytest']},  # colcon test runs pytest (not unittest)
+    extras_require={'test': ['pytest', 'hypothesis']},  # colcon test runs pytest
     zip_safe=False,
     maintainer='smpl_depth_ros maintainers',
     maintainer_email='maintainers@smpl-depth-ros.invalid',

@@ -137,7 +137,11 @@ def load_params_file(path: str | Path, node_name: str = 'reconstructor') -> dict
     for key, section in data.items():
         if not isinstance(section, dict) or 'ros__parameters' not in section:
             continue
-        params = _flatten(section['ros__parameters'] or {})
+        params = section['ros__parameters'] or {}
+        if not isinstance(params, dict):
+            raise ProcessBagError(f'params file {path}: {key}: ros__parameters must be a '
+                                  f'mapping, got {type(params).__name__}')
+        params = _flatten(params)
         k = str(key).strip('/')
         if k in ('**', ''):
             generic.update(params)
@@ -220,7 +224,11 @@ def parse_param_overrides(items) -> dict[str, Any]:
         name, ok, value = item.partition(sep)
         if not ok or not name:
             raise ProcessBagError(f"-p expects name=value, got {item!r}")
-        out[name.strip()] = yaml.safe_load(value) if value.strip() else ''
+        try:
+            out[name.strip()] = yaml.safe_load(value) if value.strip() else ''
+        except yaml.YAMLError as e:
+            raise ProcessBagError(f'-p {name.strip()}: {value!r} is not a YAML value '
+                                  f'({type(e).__name__})') from None
     return out
 
 

@@ -552,3 +552,15 @@ def test_two_people_get_tf_trees_and_stable_ids_in_the_output_bag(tmp_path):
             p = frames[b].transform.translation
             d = np.linalg.norm(gt['joints'][i][:, 0] - [p.x, p.y, p.z], axis=1)
             assert d.min() < 0.15, d
+
+
+def test_bad_yaml_in_overrides_and_params_files_are_usage_errors(tmp_path):
+    """Found by test_fuzz: a control character in `-p` and a non-mapping ros__parameters
+    raised yaml's ReaderError / AttributeError instead of the usage error."""
+    from smpl_depth_ros.offline import ProcessBagError, load_params_file, parse_param_overrides
+    with pytest.raises(ProcessBagError, match='not a YAML value'):
+        parse_param_overrides(['depth_min=\x1b'])
+    p = tmp_path / 'p.yaml'
+    p.write_text('/**:\n  ros__parameters: 1\n')
+    with pytest.raises(ProcessBagError, match='must be a mapping'):
+        load_params_file(p)
