@@ -406,6 +406,76 @@ def test_two_people_keep_their_ids_and_a_person_leaving_is_deleted(harness, core
     assert deleted == {('body_mesh', lid), ('skeleton/joints', lid), ('skeleton/bones', lid)}
 
 
+def test_faults_then_good_input_is_published_within_a_second(harness, core, scene,
+                                                              monkeypatch):
+    """Fault injection: camera_info stops (and restarts), the depth stream pauses, stamps
+    jump backwards and forwards by hours, the network and the fit raise inside the worker,
+    a parameter is set to an invalid value. After each, a good frame is answered within
+    1 s, and /diagnostics said what happened."""
+    node, tester = harness()
+    send_until(tester, scene, 'mesh', 30.0)
+    hour = 3600 * 10**9
+
+    def good(offset_ns: int = 0, index: int = 1) -> float:
+        """Seconds from publishing a good frame to its answer on ~/bodies/tracked."""
+        stamp = tester.now_ns() + offset_ns
+        t0 = time.monotonic()
+        tester.pub_depth.publish(scene.depth_msg(index, stamp))
+        assert wait_for(lambda: tester.with_stamp('bodies/tracked', stamp), 10.0), \
+            'no answer'
+        return time.monotonic() - t0
+
+    def said(reason: str) -> bool:
+        return wait_for(lambda: any(r == reason for r, _ in tester.problems()), 3.0)
+
+    took = {}
+    # camera_info stops: the last one keeps serving, and the summary says how old it is
+    infos, tester.infos = tester.infos, []
+    time.sleep(2.5)
+    took['camera_info stopped'] = good()
+    def summary_says(text):
+        return any(text in s.message for a in tester.msgs('diagnostics') for s in a.status
+                   if s.name.endswith(': processing'))
+    assert wait_for(lambda: summary_says('no camera_info for'), 3.0), tester.summary()
+    tester.infos = infos  # ... and restarts
+    took['camera_info restarted'] = good()
+    # the depth stream pauses
+    time.sleep(3.0)
+    took['depth paused 3 s'] = good()
+    # stamps jump back and forth by hours
+    took['stamps -2 h'] = good(-2 * hour)
+    assert said('time_jump')
+    took['stamps +2 h'] = good(0)
+    # the network, then the fit, raise inside the worker
+    for where, obj, name in (('network', core._rec.net, 'predict'),
+                             ('fit', core._rec.fitter, 'fit')):
+        real = getattr(obj, name)
+        calls = []
+
+        def boom(*a, _real=real, _calls=calls, **k):
+            if not _calls:
+                _calls.append(1)
+                raise RuntimeError(f'injected fault in the {where}')
+            return _real(*a, **k)
+        monkeypatch.setattr(obj, name, boom)
+        stamp = tester.now_ns()
+        tester.pub_depth.publish(scene.depth_msg(0, stamp))
+        assert wait_for(lambda: calls, 10.0)
+        # (a second 'internal' within warn_throttle_s is not posted again: the summary's
+        # last_error names it)
+        assert wait_for(lambda: any(r == 'internal' and where in m
+                                    for r, m in tester.problems()) or
+                        where in (tester.summary() or {}).get('last_error', ''), 5.0), \
+            tester.problems()
+        took[f'{where} raised'] = good()
+        monkeypatch.setattr(obj, name, real)
+    # an invalid parameter at run time is refused; the node keeps going
+    res = node.set_parameters([Parameter('max_persons', value=-1)])[0]
+    assert not res.successful and 'max_persons' in res.reason
+    took['invalid parameter'] = good()
+    assert all(t < 1.0 for t in took.values()), took
+
+
 def test_burst_against_slow_worker(harness, core, scene):
     core.delay = 0.3  # deliberately slow: far below the 30 Hz input
     node, tester = harness()

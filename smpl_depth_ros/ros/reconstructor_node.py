@@ -137,6 +137,9 @@ _NODE_PARAMS = {
 READ_ONLY = {'backend', 'model_path', 'weights_path', 'qos_reliability', 'qos_depth',
              'cpu_threads'}
 DEVICES = ('auto', 'cpu', 'cuda')
+STAMP_JUMP_BACK_S = 0.001    # a depth stamp this far before the previous one is a jump
+STAMP_JUMP_FORWARD_S = 60.0  # ... and this far after it
+INFO_STALE_S = 2.0           # diagnostics warn when camera_info is older than this
 BACKENDS = ('anny', 'smpl')
 SOLVERS = ('fast', 'lbfgs')
 SEGMENTATIONS = ('model', 'network')
@@ -367,6 +370,10 @@ class ReconstructorNode(Node):
         self._mailbox = Mailbox()
         self._stop = threading.Event()
         self._camera_infos: dict[str, Any] = {}   # frame_id -> (K, D, size) | InputError
+        self._info_time: dict[str, float] = {}    # frame_id -> last camera_info (monotonic)
+        self._last_stamp_ns: int | None = None    # worker: the previous frame's stamp
+        self._depth_time = 0.0                    # last depth message (monotonic)
+        self._notices = Counter()                 # events that skip no frame (time jumps)
         self._distortion_warned: set[str] = set()
         self._throttle: dict[str, float] = {}
         self._stats = Counter()
@@ -520,9 +527,34 @@ class ReconstructorNode(Node):
                 hardware_id=str(self._rec.device) if hasattr(self, '_rec') else '')
             self._publish_diag([status])
 
+    def _notice(self, reason: str, text: str, header=None):
+        """An event that skips no frame (a time jump): counted, warned (throttled per
+        reason) and posted on /diagnostics."""
+        with self._lock:
+            self._notices[reason] += 1
+            count = self._notices[reason]
+        if self._throttled('notice:' + reason):
+            self.get_logger().warning(f'{text}; {count} so far')
+            self._publish_diag([A.diagnostic_status(
+                f'{self.get_name()}: input', A.WARN, f'[{reason}] {text}',
+                {'reason': reason, 'count': count,
+                 'frame_id': getattr(header, 'frame_id', '')})])
+
+    def _check_stamp(self, frame: Frame):
+        """Worker: say when the stamps jump backwards or far forwards (a bag loop, a clock
+        change); the tracks restart on their own (tracking_max_gap_s, track_timeout_s)."""
+        prev, self._last_stamp_ns = self._last_stamp_ns, frame.stamp_ns
+        if prev is None:
+            return
+        dt = (frame.stamp_ns - prev) * 1e-9
+        if dt < -STAMP_JUMP_BACK_S or dt > STAMP_JUMP_FORWARD_S:
+            self._notice('time_jump', f'depth stamps jumped {dt:+.3f} s: tracking restarts, '
+                                      'persons get new IDs', frame.header)
+
     # -- callbacks (executor thread): convert and hand over, nothing more -----------------
     def _on_camera_info(self, msg: CameraInfo):
         fid = msg.header.frame_id
+        self._info_time[fid] = time.monotonic()
         try:
             K, D, size = A.camera_info_to_K(msg)
         except InputError as e:
@@ -536,7 +568,7 @@ class ReconstructorNode(Node):
         self._camera_infos[fid] = (K, D, size)
 
     def _on_depth(self, msg: Image):
-        received = time.monotonic()
+        received = self._depth_time = time.monotonic()
         with self._lock:
             self._stats['received'] += 1
         fid = msg.header.frame_id
@@ -571,6 +603,7 @@ class ReconstructorNode(Node):
             frame = self._mailbox.get(timeout=0.1)
             if frame is None or self._stop.is_set():
                 continue
+            self._check_stamp(frame)
             try:
                 self._apply_pending_config()
                 result = self._rec.process(frame.depth, frame.K, stamp_ns=frame.stamp_ns)
@@ -655,6 +688,10 @@ class ReconstructorNode(Node):
             values.update({f'time_{k}_ms': t for k, t in self._timings.items()})
             values.update({f'fit_{k}': x for k, x in self._last_person.items()})
             values.update({f'errors_{k}': n for k, n in sorted(self._errors.items())})
+            values.update({f'events_{k}': n for k, n in sorted(self._notices.items())})
+            now_m = time.monotonic()
+            info_age = max((now_m - t for t in self._info_time.values()), default=None)
+            values['camera_info_age_s'] = 'none yet' if info_age is None else info_age
             if self._last_error:
                 values['last_error'] = f'[{self._last_error[0]}] {self._last_error[1]}'
             errors_now = sum(self._errors.values())
@@ -667,6 +704,11 @@ class ReconstructorNode(Node):
         })
         if rec == 0:
             return A.STALE, 'no depth received', values
+        age = values['camera_info_age_s']
+        if isinstance(age, float) and age > INFO_STALE_S and \
+                self._depth_time > max(self._info_time.values()):
+            return A.WARN, (f'no camera_info for {age:.1f} s while depth arrives: using the '
+                            'last one received'), values
         if values['rate_out_hz'] == 0 and values['rate_in_hz'] > 0:
             return A.WARN, 'receiving depth but publishing nothing', values
         prev_err, self._errors_prev = self._errors_prev, errors_now

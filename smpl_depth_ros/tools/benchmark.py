@@ -148,9 +148,12 @@ def bench_net(args) -> dict:
 def bench_node(args) -> dict:
     """Drive a `reconstructor` subprocess with a 30 Hz depth stream over loopback DDS.
 
-    Measures the node's sustained output rate (~/mesh), stamp-to-receive latency of each
-    output, the node's dropped-frame behaviour (offered vs answered) and its resident memory
-    every 10 % of the run (VmRSS from /proc).
+    Measures the node's sustained output rate (frames answered on ~/bodies/tracked, one
+    message per frame whatever the number of persons), the stamp-to-receive latency of
+    each, the persons per frame, the dropped frames (offered vs answered) and its resident
+    memory (VmRSS from /proc) every `--sample-every` frames (default 10 % of the run).
+    The soak verdict (`flat`): RSS growth over the last 80 % of the run below 5 MB and the
+    p95 latency of the last 1,000 answers within 10 % of the first 1,000's.
     """
     import random
     import subprocess
@@ -161,8 +164,8 @@ def bench_node(args) -> dict:
     os.environ.setdefault('ROS_DOMAIN_ID', str(random.randint(30, 99)))
     import rclpy
     from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from sensor_msgs.msg import CameraInfo, Image
-    from visualization_msgs.msg import Marker
+    from rclpy.serialization import deserialize_message
+    from sensor_msgs.msg import CameraInfo, Image, JointState
 
     from smpl_depth_ros.bagio import iter_depth_bag
     from smpl_depth_ros.ros import adapters
@@ -191,15 +194,15 @@ def bench_node(args) -> dict:
     qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
     pub_d = node.create_publisher(Image, '/bench/depth', qos)
     pub_i = node.create_publisher(CameraInfo, '/bench/camera_info', qos)
-    lat, recv_t = [], []
+    lat, recv_t, persons = [], [], []
 
-    def on_mesh(data: bytes):
-        # Raw: the stamp is read from the CDR bytes. Deserializing the 82k-point Marker
-        # in this Python driver would add its own tens of ms to every figure.
+    def on_tracked(data: bytes):
         now = node.get_clock().now().nanoseconds
         lat.append((now - adapters.cdr_stamp_ns(data)) * 1e-6)
         recv_t.append(time.monotonic())
-    node.create_subscription(Marker, '/reconstructor/mesh', on_mesh, 10, raw=True)
+        persons.append(len(deserialize_message(data, JointState).name))
+    node.create_subscription(JointState, '/reconstructor/bodies/tracked', on_tracked, 10,
+                             raw=True)
     msgs = [adapters.depth_to_image_msg(d, encoding='16UC1') for d, _ in frames]
     infos = [adapters.camera_info_msg(K, (W, H)) for _, K in frames]
     # Wait for the node to be up (first output).
@@ -214,13 +217,15 @@ def bench_node(args) -> dict:
         rclpy.spin_once(node, timeout_sec=0.2)
     lat.clear()
     recv_t.clear()
+    persons.clear()
     rss0 = rss_mb()
-    rss_trace = []  # (frames offered, RSS MB) every 10 % of the run
+    every = args.sample_every or max(args.frames // 10, 1)
+    trace = []  # (frames offered, RSS MB, answers so far)
     period = 1.0 / args.rate
     start = time.monotonic()
     for k in range(args.frames):
-        if k % max(args.frames // 10, 1) == 0:
-            rss_trace.append((k, rss_mb()))
+        if k % every == 0:
+            trace.append((k, rss_mb(), len(lat)))
         target = start + k * period
         while time.monotonic() < target:
             rclpy.spin_once(node, timeout_sec=max(0.0, target - time.monotonic()))
@@ -243,15 +248,24 @@ def bench_node(args) -> dict:
     node.destroy_node()
     rclpy.try_shutdown()
     dur = (recv_t[-1] - recv_t[0]) if len(recv_t) > 1 else float('nan')
+    trace.append((args.frames, rss1, len(lat)))
+    pct = lambda a, q: float(np.percentile(a, q)) if len(a) else float('nan')  # noqa: E731
+    # After the allocator's warm-up (the first 20 %), the growth that matters:
+    late = next(t for t in trace if t[0] >= 0.2 * args.frames)
+    n = min(1000, len(lat) // 2)
+    p95_first, p95_last = pct(lat[:n], 95), pct(lat[-n:], 95) if n else float('nan')
+    growth = rss1 - late[1]
     return dict(input_rate_hz=args.rate, frames_offered=args.frames, image=f'{W}x{H}',
+                params=list(args.param),
                 outputs=len(lat), output_rate_hz=(len(lat) - 1) / dur if len(lat) > 1 else 0.0,
-                latency_ms_p50=float(np.percentile(lat, 50)) if lat else float('nan'),
-                latency_ms_p95=float(np.percentile(lat, 95)) if lat else float('nan'),
+                latency_ms_p50=pct(lat, 50), latency_ms_p95=pct(lat, 95),
+                persons_per_frame_mean=float(np.mean(persons)) if persons else 0.0,
                 dropped=args.frames - len(lat), rss_mb_start=rss0, rss_mb_end=rss1,
-                rss_growth_mb=rss1 - rss0,
-                # After the allocator's warm-up (the first half), the growth that matters:
-                rss_growth_second_half_mb=rss1 - rss_trace[len(rss_trace) // 2][1],
-                rss_trace_mb=[[k, round(m, 1)] for k, m in rss_trace + [(args.frames, rss1)]])
+                rss_growth_mb=rss1 - rss0, rss_growth_last_80pct_mb=growth,
+                latency_ms_p95_first_1000=p95_first, latency_ms_p95_last_1000=p95_last,
+                flat=bool(growth < 5.0 and p95_last <= 1.1 * p95_first),
+                trace=[dict(frames=k, rss_mb=round(m, 1), answered=a,
+                            dropped=k - a) for k, m, a in trace])
 
 
 def main(argv=None) -> int:
@@ -275,6 +289,8 @@ def main(argv=None) -> int:
                     'forwards and backwards in a loop')
     nd.add_argument('--frames', type=int, default=2000)
     nd.add_argument('--rate', type=float, default=30.0)
+    nd.add_argument('--sample-every', type=int, default=0, metavar='FRAMES',
+                    help='RSS / answers sampled every N frames (default 10 %% of the run)')
     nd.add_argument('-p', '--param', action='append', default=[], metavar='NAME:=VALUE',
                     help='extra node parameter (repeatable), e.g. -p flip_tta:=false')
     nd.add_argument('--json', default=None)
