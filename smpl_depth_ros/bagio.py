@@ -160,6 +160,8 @@ def write_depth_bag(path: str | Path, frames_iter: Iterable[tuple[int, np.ndarra
             writer.write(c_info, stamp_ns, typestore.serialize_cdr(info, info_t))
             writer.write(c_img, stamp_ns, typestore.serialize_cdr(img, img_t))
             n += 1
+    for f in Path(path).glob('*.mcap'):
+        mcap_write_chunk_crcs(f)
     return n
 
 
@@ -195,3 +197,71 @@ def iter_depth_bag(path: str | Path, depth_topic: str = DEPTH_TOPIC,
             depth = bytes_to_depth(msg.data, int(msg.width), int(msg.height), msg.encoding,
                                    int(msg.step), bool(msg.is_bigendian))
             yield stamp, depth, K
+
+
+# -- MCAP chunk CRCs ----------------------------------------------------------------------
+# rosbags writes MCAP chunks with uncompressed_crc = 0 ("not computed" in the MCAP spec),
+# so a flipped byte in an image payload goes unnoticed. `mcap_write_chunk_crcs` fills
+# them in after writing; readers check them (rosbags' reader raises 'Chunk checksum
+# mismatch', which process_bag reports as a damaged bag).
+MCAP_MAGIC = b'\x89MCAP0\r\n'
+_CHUNK = 0x06
+
+
+def _chunk_records(comp: str, data) -> bytes:
+    if comp == '':
+        return bytes(data)
+    if comp == 'zstd':
+        try:
+            from compression import zstd
+        except ImportError:
+            from backports import zstd
+        return zstd.decompress(bytes(data))
+    if comp == 'lz4':
+        from lz4.frame import decompress
+        return decompress(bytes(data))
+    raise ValueError(f'unsupported chunk compression {comp!r}')
+
+
+def mcap_chunks(buf) -> Iterator[tuple[int, int, int, int, bytes]]:
+    """(offset of the CRC field, stored CRC, first message time, chunk offset, the
+    chunk's uncompressed records) of every chunk of an MCAP file's bytes, in file order;
+    stops at the first record that runs past the end."""
+    import struct
+    pos, n = len(MCAP_MAGIC), len(buf)
+    if bytes(buf[:pos]) != MCAP_MAGIC:
+        return
+    while pos + 9 <= n:
+        op = buf[pos]
+        (length,) = struct.unpack_from('<Q', buf, pos + 1)
+        body = pos + 9
+        if body + length > n:
+            return
+        if op == _CHUNK:
+            t0, _t1, _usize, crc = struct.unpack_from('<QQQI', buf, body)
+            (clen,) = struct.unpack_from('<I', buf, body + 28)
+            comp = bytes(buf[body + 32:body + 32 + clen]).decode('utf-8', 'replace')
+            at = body + 32 + clen
+            (dlen,) = struct.unpack_from('<Q', buf, at)
+            data = buf[at + 8:at + 8 + dlen]
+            try:
+                records = _chunk_records(comp, data)
+            except Exception:  # noqa: BLE001 - damaged compressed data: CRC of nothing
+                records = b''
+            yield body + 24, crc, t0, pos, records
+        pos = body + length
+
+
+def mcap_write_chunk_crcs(path: str | Path) -> int:
+    """Fill in the CRC32 of every chunk that has none; returns how many were written."""
+    import mmap
+    import struct
+    import zlib
+    done = 0
+    with open(path, 'r+b') as f, mmap.mmap(f.fileno(), 0) as buf:
+        for at, crc, _t0, _pos, records in list(mcap_chunks(buf)):
+            if crc == 0:  # (a true CRC of 0 stays 0: "not computed")
+                struct.pack_into('<I', buf, at, zlib.crc32(records))
+                done += 1
+        buf.flush()
+    return done

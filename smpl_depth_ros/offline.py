@@ -1226,6 +1226,10 @@ class _BagRun:
             self.progress.close()
             self._close_runner()
             self.writer.close()
+            from smpl_depth_ros.bagio import mcap_write_chunk_crcs
+            for f in _storage_files(Path(self.writer.path)) if self.writer.path.exists() else ():
+                if f.suffix == '.mcap':  # chunk CRCs, so that damage is detectable
+                    mcap_write_chunk_crcs(f)
 
     def _close_runner(self, interrupted: bool = False):
         if self.runner is not None:

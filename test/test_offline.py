@@ -564,3 +564,33 @@ def test_bad_yaml_in_overrides_and_params_files_are_usage_errors(tmp_path):
     p.write_text('/**:\n  ros__parameters: 1\n')
     with pytest.raises(ProcessBagError, match='must be a mapping'):
         load_params_file(p)
+
+
+def test_output_bags_carry_chunk_crcs_and_damaged_chunks_are_reported(cli_run, tmp_path):
+    """rosbags writes no MCAP chunk CRCs; process_bag fills them in. A byte flipped inside
+    a chunk of such a bag is then caught (rosbags checks the CRCs it finds): the messages
+    before that chunk are read, then the reader stops with a BagReadError."""
+    import shutil
+    import zlib
+    from smpl_depth_ros.bagio import mcap_chunks
+    from smpl_depth_ros.offline import BagInput, BagReadError
+    out, _ = cli_run
+    f = storage_file(out / 'bag')
+    buf = f.read_bytes()
+    chunks = list(mcap_chunks(buf))
+    assert len(chunks) >= 3
+    assert all(crc != 0 and crc == zlib.crc32(rec) for _, crc, _, _, rec in chunks)
+    with BagInput(out / 'bag') as src:
+        n_all = sum(1 for _ in src.messages())
+    bad = tmp_path / 'bad'
+    shutil.copytree(out / 'bag', bad)
+    _, _, t0, pos, _ = chunks[len(chunks) // 2]
+    raw = bytearray(buf)
+    raw[pos + 200] ^= 0xFF  # inside the chunk's (uncompressed) records
+    storage_file(bad).write_bytes(bytes(raw))
+    got = []
+    with BagInput(bad) as src:
+        with pytest.raises(BagReadError, match='checksum mismatch'):
+            for _, t, _ in src.messages():
+                got.append(t)
+    assert 0 < len(got) < n_all and max(got) < t0
