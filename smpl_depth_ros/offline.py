@@ -287,6 +287,26 @@ def _typestore_for(topics: list[Topic]):
     return store
 
 
+def _mcap_records_fit(path: Path) -> bool:
+    """Whether every top-level record of an MCAP file lies inside the file (headers only,
+    one seek per record: a chunked bag has a few records per megabyte)."""
+    size = path.stat().st_size
+    with open(path, 'rb') as f:
+        if f.read(8) != _McapScan.MAGIC:
+            return False
+        pos = 8
+        while pos + 9 <= size:
+            head = f.read(9)
+            op, length = head[0], struct.unpack('<Q', head[1:])[0]
+            if length > size - pos - 9:
+                return False
+            if op == 0x02:  # footer
+                return True
+            pos += 9 + length
+            f.seek(pos)
+    return False
+
+
 class _McapScan:
     """Sequential reader of an MCAP file that needs no summary section: it recovers the
     messages of a truncated or damaged file up to the first broken record."""
@@ -529,6 +549,9 @@ class BagInput:
         from rosbags.highlevel import AnyReader
         from smpl_depth_ros.bagio import jazzy_typestore
         try:
+            for f in self.files:  # a damaged length field would have the reader ask for
+                if f.suffix == '.mcap' and not _mcap_records_fit(f):  # that many bytes
+                    raise ValueError(f'{f}: an MCAP record runs past the end of the file')
             reader = AnyReader([self.path], default_typestore=jazzy_typestore())
             reader.open()
         except Exception as e:  # noqa: BLE001 - AnyReaderError, ReaderError, OSError ...
