@@ -899,3 +899,40 @@ def test_rviz_config_shows_the_outputs():
     assert displays['Marker']['Topic']['Value'] == '/reconstructor/mesh'
     assert displays['MarkerArray']['Topic']['Value'] == '/reconstructor/skeleton'
     assert displays['Image']['Topic']['Value'] == '/reconstructor/segmentation'
+
+
+def test_subprocess_sigint_while_a_frame_is_processed(rclpy_context, real_core, scene):
+    """SIGINT with a 30 Hz stream going, 50 ms after an answer (the worker busy with the
+    next frame): a clean exit, no 'Exception in thread' (a publish on a dead context)."""
+    proc = start_node('-r', '__ns:=/busy', '-p', 'device:=cpu', '-p',
+                      'qos_reliability:=reliable')
+    node = rclpy.create_node('busy_probe', context=rclpy_context)
+    got = []
+    rel = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
+    pub_d = node.create_publisher(Image, '/busy/depth', rel)
+    pub_i = node.create_publisher(CameraInfo, '/busy/camera_info', rel)
+    node.create_subscription(JointState, '/busy/reconstructor/bodies/tracked',
+                             lambda m: got.append(time.monotonic()), rel)
+    spinner = Spinner(rclpy_context, node)
+    try:
+        end = time.monotonic() + 90.0
+        n, signalled = 0, False
+        while time.monotonic() < end and not signalled:
+            stamp = node.get_clock().now().nanoseconds
+            pub_i.publish(scene.info_msg())
+            pub_d.publish(scene.depth_msg(n, stamp))
+            n += 1
+            time.sleep(1 / 30)
+            if len(got) >= 5 and time.monotonic() - got[-1] > 0.05:
+                proc.send_signal(signal.SIGINT)
+                signalled = True
+        assert signalled, 'the node never answered'
+        for _ in range(10):  # the stream goes on while it shuts down
+            pub_d.publish(scene.depth_msg(n, node.get_clock().now().nanoseconds))
+            time.sleep(1 / 30)
+    finally:
+        spinner.close()
+        node.destroy_node()
+    code, out, err = stop_node(proc, None)
+    assert code == 0, err
+    assert 'Traceback' not in err and 'Exception in thread' not in err, err
