@@ -503,9 +503,12 @@ def test_ctrl_c_while_the_model_loads_leaves_nothing(tmp_path):
     import sys
     bag = REPO / 'smpl_depth_ros' / 'data' / 'sample_bag'
     out = tmp_path / 'out'
+    # (SIGINT at its default in the child: a shell's background job starts with it
+    # ignored, and Python then keeps ignoring it)
     proc = subprocess.Popen([sys.executable, '-m', 'smpl_depth_ros.offline', str(bag),
                              '--out', str(out), '--device', 'cpu'],
-                            stderr=subprocess.PIPE, text=True, cwd=str(REPO))
+                            stderr=subprocess.PIPE, text=True, cwd=str(REPO),
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     for line in proc.stderr:
         if 'loading the model' in line:
             break
