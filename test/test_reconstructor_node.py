@@ -936,3 +936,29 @@ def test_subprocess_sigint_while_a_frame_is_processed(rclpy_context, real_core, 
     code, out, err = stop_node(proc, None)
     assert code == 0, err
     assert 'Traceback' not in err and 'Exception in thread' not in err, err
+
+
+def test_tf_frames_of_two_people_where_tf2_msgs_is_installed(harness, core, scene):
+    """On a ROS install with tf2_msgs (not in the pip venv): /tf carries body_<id> for
+    each tracked person, parented to the depth frame, with the depth stamp."""
+    tf2 = pytest.importorskip('tf2_msgs.msg', reason='tf2_msgs is not installed (pip venv)')
+    from smpl_depth_ros.synth.dataset import make_multi_sequence
+    from smpl_depth_ros.synth.poses import PoseSampler
+    body = core.body
+    frames = list(make_multi_sequence(body, PoseSampler(body), np.random.default_rng(5),
+                                      scene.camera, 3, 2))
+    node, tester = harness(max_persons=3)
+    core.set_config(core.config.with_overrides(max_persons=3))
+    got = []
+    tester.node.create_subscription(tf2.TFMessage, '/tf', got.append, 100)
+    for f in frames:
+        stamp = tester.now_ns()
+        tester.pub_depth.publish(A.depth_to_image_msg(
+            f['depth'], A.make_header(stamp_ns=stamp, frame_id=FRAME), '16UC1'))
+        assert wait_for(lambda: tester.with_stamp('bodies/tracked', stamp), 30.0)
+        tracked = tester.with_stamp('bodies/tracked', stamp)[0]
+        assert wait_for(lambda: any(A.stamp_to_ns(t.header.stamp) == stamp
+                                    for m in got for t in m.transforms), 5.0)
+        roots = {t.child_frame_id: t for m in got for t in m.transforms
+                 if A.stamp_to_ns(t.header.stamp) == stamp and t.header.frame_id == FRAME}
+        assert set(roots) == {str(n) for n in tracked.name}
