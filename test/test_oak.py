@@ -331,16 +331,16 @@ def test_validate_config():
 
 
 # -- the reconnecting driver ----------------------------------------------------------------
-def host_session(device_id: str = 'HOSTDEV', maxsize: int = 4):
+def host_connection(device_id: str = 'HOSTDEV', maxsize: int = 4):
     q = dai.MessageQueue('depth', maxsize, False)
-    return oak.QueueSession(q, host_calibration(), device_id), q
+    return oak.QueueConnection(q, host_calibration(), device_id), q
 
 
 def test_driver_survives_unplug_and_backs_off():
     cfg = oak.OakConfig(reconnect_backoff_s=0.05, reconnect_backoff_max_s=0.2,
                         frame_timeout_s=1.0)
-    first, q1 = host_session()
-    second, q2 = host_session()
+    first, q1 = host_connection()
+    second, q2 = host_connection()
     frames, events, opened = [], [], []
     plan = [oak.DeviceNotFoundError('not back yet')] * 3 + [second]
 
@@ -380,9 +380,9 @@ def test_driver_survives_unplug_and_backs_off():
 
 def test_driver_treats_silence_as_a_lost_device():
     cfg = oak.OakConfig(reconnect_backoff_s=0.05, frame_timeout_s=0.3)
-    session, q = host_session()
+    connection, q = host_connection()
     events = []
-    driver = oak.OakDriver(cfg, session, lambda f, s: None,
+    driver = oak.OakDriver(cfg, connection, lambda f, s: None,
                            lambda kind, msg, info: events.append((kind, msg)),
                            reopen=lambda dev: (_ for _ in ()).throw(
                                oak.DeviceNotFoundError('gone')))
@@ -523,7 +523,7 @@ class RecordingCamera(OakCameraNode):
 
 
 class HostDevice:
-    """A session factory over host queues: `plug()` makes the next session, `unplug()`
+    """A connection factory over host queues: `plug()` makes the next connection, `unplug()`
     closes the current one; opening while unplugged fails like a missing device."""
 
     def __init__(self, calibration=None):
@@ -537,7 +537,7 @@ class HostDevice:
         if not self.plugged:
             raise oak.DeviceNotFoundError(f"no OAK device found: looked for '{device_id}'")
         self.queue = dai.MessageQueue('depth', 4, False)
-        return oak.QueueSession(self.queue, self.calibration, 'HOSTDEV', 'host OAK HOSTDEV')
+        return oak.QueueConnection(self.queue, self.calibration, 'HOSTDEV', 'host OAK HOSTDEV')
 
     def unplug(self):
         self.plugged = False
@@ -549,7 +549,7 @@ class HostDevice:
 
 def test_node_publishes_depth_and_camera_info(rclpy_context):
     dev = HostDevice()
-    cam = RecordingCamera(session_factory=dev, context=rclpy_context, namespace='/oak',
+    cam = RecordingCamera(connection_factory=dev, context=rclpy_context, namespace='/oak',
                           parameter_overrides=[Parameter('min_range', value=0.3),
                                                Parameter('max_range', value=6.0),
                                                Parameter('reconnect_backoff_s', value=0.05),
@@ -603,7 +603,7 @@ def test_node_publishes_depth_and_camera_info(rclpy_context):
 def test_invalid_parameters_fail_before_the_device_is_looked_for(rclpy_context):
     dev = HostDevice()
     with pytest.raises(ValueError, match='preset must be one of'):
-        OakCameraNode(session_factory=dev, context=rclpy_context,
+        OakCameraNode(connection_factory=dev, context=rclpy_context,
                       parameter_overrides=[Parameter('preset', value='ultra')])
     assert dev.opens == []
 
@@ -611,7 +611,7 @@ def test_invalid_parameters_fail_before_the_device_is_looked_for(rclpy_context):
 def test_wait_for_device_starts_without_one(rclpy_context):
     dev = HostDevice()
     dev.plugged = False
-    cam = RecordingCamera(session_factory=dev, context=rclpy_context, namespace='/w',
+    cam = RecordingCamera(connection_factory=dev, context=rclpy_context, namespace='/w',
                           parameter_overrides=[Parameter('wait_for_device', value=True),
                                                Parameter('reconnect_backoff_s', value=0.05),
                                                Parameter('reconnect_backoff_max_s',
@@ -677,7 +677,7 @@ def test_published_messages_feed_the_reconstructor(rclpy_context, core, person):
     from smpl_depth_ros.ros.reconstructor_node import ReconstructorNode
 
     dev = HostDevice()
-    cam = OakCameraNode(session_factory=dev, context=rclpy_context, namespace='/oak')
+    cam = OakCameraNode(connection_factory=dev, context=rclpy_context, namespace='/oak')
     rec = ReconstructorNode(reconstructor_factory=lambda cfg: core, context=rclpy_context,
                             namespace='/oak',
                             cli_args=['--ros-args', '-r', 'depth:=depth/image_raw',
@@ -707,7 +707,7 @@ def test_published_messages_feed_the_reconstructor(rclpy_context, core, person):
 
 def test_reconstruct_oak_hands_over_the_same_messages(rclpy_context, core, person):
     dev = HostDevice()
-    cam, rec = make_reconstruct_oak(session_factory=dev,
+    cam, rec = make_reconstruct_oak(connection_factory=dev,
                                     reconstructor_factory=lambda cfg: core,
                                     context=rclpy_context)
     handed = []
@@ -756,9 +756,9 @@ def test_sensor_preset_follows_the_camera_and_its_settings():
 def oak_device():
     if not dai.Device.getAllAvailableDevices():
         pytest.skip('no OAK device attached')
-    session = oak.open_session(oak.OakConfig(), timeout_s=5.0)
-    yield session
-    session.close()
+    connection = oak.open_connection(oak.OakConfig(), timeout_s=5.0)
+    yield connection
+    connection.close()
 
 
 @pytest.mark.hardware

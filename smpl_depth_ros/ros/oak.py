@@ -12,9 +12,9 @@ No rclpy here: the `oak_camera` node (`ros.oak_camera_node`) wires this module t
   the capture time on the host steady clock (`dai.Clock.now()`, synchronised with the
   device clock by depthai); the mapper adds the measured offset between the ROS clock and
   that steady clock;
-* `find_device`, `OakSession`, `OakDriver`: open a device by MxID / IP / name (or the first
+* `find_device`, `OakConnection`, `OakDriver`: open a device by MxID / IP / name (or the first
   available), run the pipeline, and keep it running across unplugging (reconnect with
-  exponential backoff); `QueueSession` + `make_host_frame` feed the same path from the
+  exponential backoff); `QueueConnection` + `make_host_frame` feed the same path from the
   host (tests, replay).
 
 Geometry: without alignment the depth image is the rectified right (CAM_C) view, published
@@ -489,9 +489,9 @@ def find_device(device_id: str = '', timeout_s: float = 5.0,
                               f'devices visible: {seen}; {hint}')
 
 
-class QueueSession:
-    """Depth frames from a depthai MessageQueue: the reading half of `OakSession`, and on
-    its own a host-fed session (tests, replay: push `make_host_frame`s into the queue).
+class QueueConnection:
+    """Depth frames from a depthai MessageQueue: the reading half of `OakConnection`, and on
+    its own a host-fed connection (tests, replay: push `make_host_frame`s into the queue).
 
     Attributes:
         device_id: the device's MxID / device ID.
@@ -529,7 +529,7 @@ class QueueSession:
             pass
 
 
-class OakSession(QueueSession):
+class OakConnection(QueueConnection):
     """An open device running the stereo pipeline (`build_pipeline`)."""
 
     def __init__(self, cfg: OakConfig, info: dai.DeviceInfo):
@@ -569,8 +569,8 @@ class OakSession(QueueSession):
             pass
 
 
-def open_session(cfg: OakConfig, device_id: str | None = None,
-                 timeout_s: float | None = None) -> OakSession:
+def open_connection(cfg: OakConfig, device_id: str | None = None,
+                 timeout_s: float | None = None) -> OakConnection:
     """Find (`find_device`) and open a device, start the pipeline.
 
     Args:
@@ -579,7 +579,7 @@ def open_session(cfg: OakConfig, device_id: str | None = None,
     """
     wanted = cfg.device_id if device_id is None else device_id
     info = find_device(wanted, cfg.connect_timeout_s if timeout_s is None else timeout_s)
-    return OakSession(cfg, info)
+    return OakConnection(cfg, info)
 
 
 def backoff_delays(initial: float, maximum: float):
@@ -591,32 +591,32 @@ def backoff_delays(initial: float, maximum: float):
 
 
 class OakDriver:
-    """Reads frames from a session on a thread; reconnects with backoff when it fails.
+    """Reads frames from a connection on a thread; reconnects with backoff when it fails.
 
     Callbacks run on the driver thread:
-        on_frame(frame: dai.ImgFrame, session) for every frame;
-        on_event(kind, message, info) with kind 'lost' (the session failed: message says
+        on_frame(frame: dai.ImgFrame, connection) for every frame;
+        on_event(kind, message, info) with kind 'lost' (the connection failed: message says
         why), 'retry' (an attempt to open failed; info has attempt and delay_s, the wait
         before the next one), 'reconnected' (after a loss; info has outage_s and attempts)
-        or 'connected' (the first session when started without one); a raising on_frame is
+        or 'connected' (the first connection when started without one); a raising on_frame is
         reported as 'frame_error' and the loop goes on.
 
     Args:
-        session: the open first session (the node opens it before starting, so that a
+        connection: the open first connection (the node opens it before starting, so that a
             missing device fails start-up), or None to look for the device on the thread
             (retrying with backoff: `wait_for_device`).
-        reopen: opens a new session for a device id (default: `open_session` without
+        reopen: opens a new connection for a device id (default: `open_connection` without
             waiting): cfg.device_id when set, else the MxID of the unit first opened, so
             a re-plugged camera comes back and another one does not take its place.
     """
 
-    def __init__(self, cfg: OakConfig, session, on_frame: Callable, on_event: Callable,
+    def __init__(self, cfg: OakConfig, connection, on_frame: Callable, on_event: Callable,
                  reopen: Callable[[str], Any] | None = None):
         self.cfg = cfg
-        self.session = session
+        self.connection = connection
         self._on_frame = on_frame
         self._on_event = on_event
-        self._open = reopen or (lambda dev: open_session(cfg, device_id=dev, timeout_s=0.0))
+        self._open = reopen or (lambda dev: open_connection(cfg, device_id=dev, timeout_s=0.0))
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name='oak-driver', daemon=True)
         self.frames = 0
@@ -626,7 +626,7 @@ class OakDriver:
         self._thread.start()
 
     def stop(self, timeout: float = 5.0) -> bool:
-        """Stop the thread and close the session; True when the thread ended."""
+        """Stop the thread and close the connection; True when the thread ended."""
         self._stop.set()
         if self._thread.is_alive() and threading.current_thread() is not self._thread:
             self._thread.join(timeout)
@@ -636,13 +636,13 @@ class OakDriver:
     def running(self) -> bool:
         return self._thread.is_alive()
 
-    def _read(self, session):
-        """Frames until the session fails (raises) or stop is requested."""
+    def _read(self, connection):
+        """Frames until the connection fails (raises) or stop is requested."""
         # The first frame after (re)starting a pipeline can take a few seconds.
         timeout = max(self.cfg.frame_timeout_s, 10.0)
         last = time.monotonic()
         while not self._stop.is_set():
-            frame = session.get(min(0.2, self.cfg.frame_timeout_s))
+            frame = connection.get(min(0.2, self.cfg.frame_timeout_s))
             now = time.monotonic()
             if frame is None:
                 if now - last > timeout:
@@ -652,57 +652,57 @@ class OakDriver:
             timeout = self.cfg.frame_timeout_s
             self.frames += 1
             try:
-                self._on_frame(frame, session)
+                self._on_frame(frame, connection)
             except Exception as e:  # noqa: BLE001 - one bad frame must not stop the camera
                 self._on_event('frame_error', f'{type(e).__name__}: {e}', {})
 
     def _run(self):
-        session = self.session
-        first = session is None  # wait_for_device: nothing opened yet
+        connection = self.connection
+        first = connection is None  # wait_for_device: nothing opened yet
         # Reopen what was asked for (an IP reaches a PoE camera outside the broadcast
         # domain); when that was 'any', the unit found first, by its MxID.
-        device_id = self.cfg.device_id or (getattr(session, 'device_id', '') if session
+        device_id = self.cfg.device_id or (getattr(connection, 'device_id', '') if connection
                                            is not None else '')
         lost_at = time.monotonic()
         while not self._stop.is_set():
-            if session is None:
-                session = self._reconnect(device_id, lost_at, first)
-                if session is None:
+            if connection is None:
+                connection = self._reconnect(device_id, lost_at, first)
+                if connection is None:
                     return
                 first = False
-                device_id = self.cfg.device_id or getattr(session, 'device_id', '')
+                device_id = self.cfg.device_id or getattr(connection, 'device_id', '')
             try:
-                self._read(session)
+                self._read(connection)
             except Exception as e:  # noqa: BLE001 - any failure: report and reconnect
                 lost_at = time.monotonic()
                 self._on_event('lost', f'{type(e).__name__}: {e}', {'device_id': device_id})
             finally:
-                session.close()
-                self.session = session = None
+                connection.close()
+                self.connection = connection = None
 
     def _reconnect(self, device_id: str, lost_at: float, first: bool):
-        """A new session, retried with backoff; None when stopped first."""
+        """A new connection, retried with backoff; None when stopped first."""
         delays = backoff_delays(self.cfg.reconnect_backoff_s, self.cfg.reconnect_backoff_max_s)
         wait = 0.0 if first else next(delays)
         attempt = 0
         while not self._stop.wait(wait):
             attempt += 1
             try:
-                session = self._open(device_id)
+                connection = self._open(device_id)
             except Exception as e:  # noqa: BLE001
                 wait = next(delays)
                 self._on_event('retry', f'{type(e).__name__}: {e}',
                                {'attempt': attempt, 'delay_s': wait, 'device_id': device_id})
                 continue
             if self._stop.is_set():
-                session.close()
+                connection.close()
                 return None
-            self.session = session
+            self.connection = connection
             if not first:
                 self.reconnects += 1
             self._on_event('connected' if first else 'reconnected',
-                           getattr(session, 'description', device_id),
+                           getattr(connection, 'description', device_id),
                            {'outage_s': time.monotonic() - lost_at, 'attempts': attempt,
-                            'device_id': getattr(session, 'device_id', device_id)})
-            return session
+                            'device_id': getattr(connection, 'device_id', device_id)})
+            return connection
         return None

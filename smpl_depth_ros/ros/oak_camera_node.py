@@ -143,15 +143,15 @@ def validate(values: dict[str, Any]) -> str | None:
     return oak.validate(oak.config_from_dict(values))
 
 
-SessionFactory = Callable[[str, float], Any]
+ConnectionFactory = Callable[[str, float], Any]
 
 
 class OakCameraNode(Node):
     """Publishes OAK stereo depth + camera info (see the module docstring).
 
     Args:
-        session_factory: ``(device_id, timeout_s) -> session`` (default
-            `oak.open_session` with this node's OakConfig); tests pass host-made sessions.
+        connection_factory: ``(device_id, timeout_s) -> connection`` (default
+            `oak.open_connection` with this node's OakConfig); tests pass host-made connections.
         **kwargs: passed to rclpy's Node (context, parameter_overrides, cli_args ...).
 
     Raises:
@@ -159,7 +159,7 @@ class OakCameraNode(Node):
         ValueError: invalid parameters.
     """
 
-    def __init__(self, session_factory: SessionFactory | None = None, **kwargs):
+    def __init__(self, connection_factory: ConnectionFactory | None = None, **kwargs):
         super().__init__(NODE_NAME, **kwargs)
         defaults = parameter_defaults()
         self.declare_parameters('', [(n, v, _descriptor(n, v)) for n, v in defaults.items()])
@@ -177,7 +177,7 @@ class OakCameraNode(Node):
         self._sinks: list[Callable[[Image, CameraInfo], Any]] = []
         self._throttle: dict[str, float] = {}
         self._intrinsics: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
-        self._checked_sessions: set[int] = set()
+        self._checked_connections: set[int] = set()
         self.published = 0
         self.dropped = 0
         self.last_stamp_ns: int | None = None
@@ -190,16 +190,16 @@ class OakCameraNode(Node):
         self._mapper = oak.ClockMapper(lambda: self.get_clock().now().nanoseconds)
 
         cfg = self.cfg
-        self._open = session_factory or (
-            lambda device_id, timeout_s: oak.open_session(cfg, device_id, timeout_s))
-        session = None
+        self._open = connection_factory or (
+            lambda device_id, timeout_s: oak.open_connection(cfg, device_id, timeout_s))
+        connection = None
         if not cfg.wait_for_device:
-            session = self._open(cfg.device_id, cfg.connect_timeout_s)  # raises: no device
-            self._log_connected(session)
+            connection = self._open(cfg.device_id, cfg.connect_timeout_s)  # raises: no device
+            self._log_connected(connection)
         else:
             self.get_logger().info('waiting for ' + (f"OAK device '{cfg.device_id}'" if
                                                      cfg.device_id else 'an OAK device'))
-        self._driver = oak.OakDriver(cfg, session, self._on_frame, self._on_event,
+        self._driver = oak.OakDriver(cfg, connection, self._on_frame, self._on_event,
                                      reopen=lambda dev: self._open(dev, 0.0))
         self._driver.start()
 
@@ -248,14 +248,14 @@ class OakCameraNode(Node):
     @property
     def sensor_preset(self) -> str:
         """The depth-noise preset of the open camera (`oak.sensor_preset`)."""
-        opened = self._driver.session  # the open device connection
+        opened = self._driver.connection
         return oak.sensor_preset(self.cfg, getattr(opened, 'description', ''))
 
-    def _log_connected(self, session):
+    def _log_connected(self, connection):
         cfg = self.cfg
         align = 'CAM_A (colour)' if cfg.align_to_color else 'rectified CAM_C'
         self.get_logger().info(
-            f"opened {getattr(session, 'description', 'OAK')}: {cfg.width}x{cfg.height} at "
+            f"opened {getattr(connection, 'description', 'OAK')}: {cfg.width}x{cfg.height} at "
             f"{cfg.fps:g} fps, preset {cfg.preset}, depth in {align} view, range "
             f"{cfg.min_range:g}-{cfg.max_range:g} m; publishing '{self._pub_depth.topic_name}'"
             f" + '{self._pub_info.topic_name}' as '{self._frame_id}'")
@@ -279,28 +279,28 @@ class OakCameraNode(Node):
             log.info(f"{what} reconnected after {info['outage_s']:.1f} s "
                      f"({info['attempts']} attempt(s)); publishing again")
         elif kind == 'connected':
-            self._log_connected(self._driver.session)
+            self._log_connected(self._driver.connection)
         elif kind == 'frame_error':
             if self._throttled('frame_error'):
                 log.warning(f'skipped a depth frame: {message}')
 
     # -- driver thread: convert and hand over ----------------------------------------------
-    def _camera_model(self, session, size: tuple[int, int]):
-        key = (id(session), size)
+    def _camera_model(self, connection, size: tuple[int, int]):
+        key = (id(connection), size)
         got = self._intrinsics.get(key)
         if got is None:
-            got = oak.intrinsics(session.calibration, oak.depth_socket(self.cfg), size)
+            got = oak.intrinsics(connection.calibration, oak.depth_socket(self.cfg), size)
             if len(self._intrinsics) > 8:
                 self._intrinsics.clear()
             self._intrinsics[key] = got
         return got
 
-    def _check_frame_intrinsics(self, frame, session, K: np.ndarray):
-        """Once per session: warn when the frame's own intrinsics disagree with the
+    def _check_frame_intrinsics(self, frame, connection, K: np.ndarray):
+        """Once per connection: warn when the frame's own intrinsics disagree with the
         calibration's (a hint that the published K does not fit the image)."""
-        if id(session) in self._checked_sessions:
+        if id(connection) in self._checked_connections:
             return
-        self._checked_sessions.add(id(session))
+        self._checked_connections.add(id(connection))
         Kf = oak.frame_intrinsics(frame)
         if Kf is None:
             return
@@ -312,11 +312,11 @@ class OakCameraNode(Node):
                 f' fy={K[1, 1]:.1f} cx={K[0, 2]:.1f} cy={K[1, 2]:.1f}; publishing the '
                 'calibration\'s')
 
-    def _on_frame(self, frame, session):
+    def _on_frame(self, frame, connection):
         depth = oak.frame_to_depth(frame, self._mapper, self.cfg.min_range,
                                    self.cfg.max_range)
-        K, D = self._camera_model(session, depth.size)
-        self._check_frame_intrinsics(frame, session, K)
+        K, D = self._camera_model(connection, depth.size)
+        self._check_frame_intrinsics(frame, connection, K)
         with self._lock:
             if self._pending is not None:
                 self.dropped += 1
@@ -372,7 +372,7 @@ def feed_reconstructor(reconstructor) -> Callable[[Image, CameraInfo], None]:
     return sink
 
 
-def make_reconstruct_oak(session_factory: SessionFactory | None = None,
+def make_reconstruct_oak(connection_factory: ConnectionFactory | None = None,
                          reconstructor_factory=None, **node_kwargs):
     """(camera, reconstructor) nodes wired for `reconstruct_oak` (not yet spinning).
 
@@ -380,7 +380,7 @@ def make_reconstruct_oak(session_factory: SessionFactory | None = None,
     """
     from smpl_depth_ros.ros.reconstructor_node import ReconstructorNode
 
-    camera = OakCameraNode(session_factory=session_factory, **node_kwargs)
+    camera = OakCameraNode(connection_factory=connection_factory, **node_kwargs)
     try:
         rec = ReconstructorNode(reconstructor_factory=reconstructor_factory, **node_kwargs)
     except BaseException:
