@@ -64,7 +64,7 @@ import numpy as np
 
 from smpl_depth_ros.config import FitConfig, PipelineConfig
 from smpl_depth_ros.ros.outputs import OUTPUT_PARAMS, TOPICS, FrameOutputs
-from smpl_depth_ros.ros.outputs import OutputOptions as _Outputs
+from smpl_depth_ros.ros.outputs import OutputOptions as MessageOptions
 from smpl_depth_ros.sensor_noise import check_sensor
 from smpl_depth_ros.types import InputError
 
@@ -737,16 +737,10 @@ class Outcome:
 
 
 @dataclass(frozen=True)
-class OutputOptions:
-    """How outputs are built (the node's publish_* and mesh parameters)."""
+class OutputOptions(MessageOptions):
+    """How outputs are built (the node's publish_* and mesh parameters, ros.outputs) and
+    where meshes are exported."""
 
-    publish_mesh: bool = True
-    publish_segmentation: bool = True
-    publish_params: bool = True
-    publish_skeleton: bool = True
-    publish_tf: bool = True
-    mesh_decimation: float = 1.0
-    mesh_lifetime_s: float = 0.5
     export_meshes: str | None = None
     mesh_dir: str = ''
 
@@ -765,7 +759,7 @@ class FrameProcessor:
         self.typestore = self.msgs.typestore
         self.faces = self.body.faces_numpy()
         self.outputs = FrameOutputs(self.body, self.rec.fitter.joint_frames,
-                                    _Outputs.from_values(vars(opts)), self.msgs)
+                                    opts, self.msgs)
 
     def info(self) -> dict:
         return dict(body=self.body.name, device=str(self.rec.device),
