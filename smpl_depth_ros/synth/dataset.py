@@ -123,32 +123,43 @@ def _height_interval(verts: np.ndarray, up: np.ndarray, x: float,
     return min(a, b), max(a, b)
 
 
-def _finish(body: BodyModel, camera: Camera, verts, joints, pose, shape, go, transl,
-            scene: render_mod.Background | None, noise: bool, p: SynthParams,
-            noise_rng: np.random.Generator) -> dict:
-    faces = body.faces_numpy()
-    parts = body.part_labels.cpu().numpy()
+def _render(camera: Camera, verts, faces, parts, scene: render_mod.Background | None,
+            noise: bool, p: SynthParams, noise_rng: np.random.Generator, hair=None):
+    """Ray-cast the mesh(es), clip to the camera's range and apply the sensor noise model:
+    (depth, depth_clean, labels, vertex_ids). `hair`: optional (V,) bool of the vertices
+    a time-of-flight sensor sees as dark."""
     r = render_mod.render_body(verts, faces, parts, camera, scene)
     inrange = (r.depth >= camera.min_range) & (r.depth <= camera.max_range)
     clean = np.where(inrange, r.depth, 0).astype(np.float32)
     labels = np.where(inrange, r.labels, 0).astype(np.uint8)
     vids = np.where(inrange, r.vertex_ids, -1).astype(np.int32)
-    depth = clean
-    if noise and p.sensor is not None:
-        from smpl_depth_ros.synth.sensors import hair_vertices
+    if not noise:
+        return clean, clean, labels, vids
+    if p.sensor is not None:
         dark = None
-        if p.sensor.kind == 'tof':
-            hair = hair_vertices(body)
+        if p.sensor.kind == 'tof' and hair is not None:
             dark = (vids >= 0) & hair[np.maximum(vids, 0)]
         nr = p.sensor.apply(clean, r.normals_cos, noise_rng, p.strength, fx=camera.fx,
                             dark=dark)
-    elif noise:
+    else:
         nr = noise_mod.apply_noise(clean, r.normals_cos, noise_rng, p.noise, fx=camera.fx)
-    if noise:
-        ok = (nr.depth >= camera.min_range) & (nr.depth <= camera.max_range)
-        depth = np.where(ok, nr.depth, 0).astype(np.float32)
-        labels = np.where(ok, nr.take(labels, 0), 0).astype(np.uint8)
-        vids = np.where(ok, nr.take(vids, -1), -1).astype(np.int32)
+    ok = (nr.depth >= camera.min_range) & (nr.depth <= camera.max_range)
+    depth = np.where(ok, nr.depth, 0).astype(np.float32)
+    labels = np.where(ok, nr.take(labels, 0), 0).astype(np.uint8)
+    vids = np.where(ok, nr.take(vids, -1), -1).astype(np.int32)
+    return depth, clean, labels, vids
+
+
+def _finish(body: BodyModel, camera: Camera, verts, joints, pose, shape, go, transl,
+            scene: render_mod.Background | None, noise: bool, p: SynthParams,
+            noise_rng: np.random.Generator) -> dict:
+    hair = None
+    if noise and p.sensor is not None and p.sensor.kind == 'tof':
+        from smpl_depth_ros.synth.sensors import hair_vertices
+        hair = hair_vertices(body)
+    depth, clean, labels, vids = _render(camera, verts, body.faces_numpy(),
+                                         body.part_labels.cpu().numpy(), scene, noise, p,
+                                         noise_rng, hair)
     return dict(depth=depth, depth_clean=clean, labels=labels, vertex_ids=vids,
                 vertices=verts.astype(np.float32), joints=joints.astype(np.float32),
                 pose=np.asarray(pose, np.float32), shape=np.asarray(shape, np.float32),
@@ -377,23 +388,8 @@ def make_multi_sequence(body: BodyModel, sampler: PoseSampler, rng: np.random.Ge
             scene = render_mod.sample_background(np.random.default_rng(scene_seed), camera,
                                                  centre, verts, up, p.background,
                                                  avoid=roots)
-        r = render_mod.render_body(verts, faces, parts, camera, scene)
-        inrange = (r.depth >= camera.min_range) & (r.depth <= camera.max_range)
-        clean = np.where(inrange, r.depth, 0).astype(np.float32)
-        labels = np.where(inrange, r.labels, 0).astype(np.uint8)
-        vids = np.where(inrange, r.vertex_ids, -1).astype(np.int32)
-        depth = clean
-        if noise:
-            if p.sensor is not None:
-                nr = p.sensor.apply(clean, r.normals_cos, noise_rng, p.strength,
-                                    fx=camera.fx)
-            else:
-                nr = noise_mod.apply_noise(clean, r.normals_cos, noise_rng, p.noise,
-                                           fx=camera.fx)
-            ok = (nr.depth >= camera.min_range) & (nr.depth <= camera.max_range)
-            depth = np.where(ok, nr.depth, 0).astype(np.float32)
-            labels = np.where(ok, nr.take(labels, 0), 0).astype(np.uint8)
-            vids = np.where(ok, nr.take(vids, -1), -1).astype(np.int32)
+        depth, clean, labels, vids = _render(camera, verts, faces, parts, scene, noise, p,
+                                             noise_rng)
         who = np.where(vids >= 0, vids // V, -1).astype(np.int8)
         frame = {k: np.stack(v) for k, v in out.items()}
         frame.update(depth=depth, depth_clean=clean, labels=labels,
