@@ -461,6 +461,8 @@ class ReconstructorNode(Node):
             if p.name in self._values:
                 self._values[p.name] = p.value
         names = {p.name for p in params}
+        if hasattr(self, '_outputs'):  # (set once the model is loaded)
+            self._outputs.opts = OutputOptions.from_values(self._values)
         if 'diagnostics_period_s' in names:
             self._diag_timer.timer_period_ns = int(self._values['diagnostics_period_s'] * 1e9)
         core = {f.name for f in fields(PipelineConfig)} | {
@@ -627,7 +629,6 @@ class ReconstructorNode(Node):
             self._report(InputError('no_person', 'no person found between depth_min='
                                     f'{self._config.depth_min} m and depth_max='
                                     f'{self._config.depth_max} m'), header)
-        self._outputs.opts = OutputOptions.from_values(self._values)
         published = False
         for key, msg in self._outputs.build(result, persons, header):
             pub = self._pubs.get(key)
