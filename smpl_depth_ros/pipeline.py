@@ -18,7 +18,7 @@ from smpl_depth_ros.config import PipelineConfig
 from smpl_depth_ros.fit import Fitter, backproject  # noqa: F401  (re-exported)
 from smpl_depth_ros.fit.freespace import FreeSpace, supporting_planes
 from smpl_depth_ros.fit.fitter import vertex_normals
-from smpl_depth_ros.net.infer import CorrespondenceNet
+from smpl_depth_ros.net.infer import CorrespondenceNet, broad_weights
 from smpl_depth_ros.net.preprocess import (NEAR_RANGE, crop_depth, find_persons,
                                            network_input, pixel_points, split_side_by_side)
 from smpl_depth_ros.sensor_noise import (AutoNoise, NoiseModel, check_sensor, noise_model,
@@ -40,6 +40,10 @@ CONF_POINTS = 15.0  # joint_confidence: pixels for a joint's support to count as
 CONF_RESIDUAL_M = 0.06  # joint_confidence: residual scale (widened for sensor noise)
 AUTO_FIRST = 10  # sensor 'auto': the noise is measured on each of the first frames ...
 AUTO_EVERY = 10  # ... then on every AUTO_EVERY-th (a few ms each)
+BROAD_NETWORK_FOR = ('stereo',)  # sensor classes whose frames use the broad network (with
+                                # weights_path ''): chosen on the validation sweep, where
+                                # it found 6-18 points more of the stereo frames and was
+                                # 0-1 mm worse on time of flight, 3-5 mm on structured light
 _CORNER = 0.6  # barycentric weight of a triangle's corner samples (0.5 / 0.7: worse)
 _CORNER_BARY = np.array([[_CORNER, (1 - _CORNER) / 2, (1 - _CORNER) / 2],
                          [(1 - _CORNER) / 2, _CORNER, (1 - _CORNER) / 2],
@@ -156,7 +160,10 @@ class Reconstructor:
         self.device = resolve_device(config.device)
         self.body = body if body is not None else load_body_model(
             config.backend, config.model_path or None, device=self.device)
-        self.net = CorrespondenceNet(self.body, config.weights_path, device=self.device)
+        self._net = CorrespondenceNet(self.body, config.weights_path, device=self.device)
+        broad = None if config.weights_path else broad_weights(self.body.name)
+        self._broad_net = (CorrespondenceNet(self.body, broad, device=self.device)
+                           if broad else None)
         self.fitter = Fitter(self.body, config.fit)
         self.faces = self.body.faces_numpy()
         parts = self.body.part_labels.cpu().numpy()
@@ -181,6 +188,17 @@ class Reconstructor:
         self._auto = AutoNoise() if config.sensor == 'auto' else None
         self._preset: tuple | None = None  # (fx, NoiseModel) of a sensor preset
         self._frames = 0
+
+    @property
+    def net(self) -> CorrespondenceNet:
+        """The correspondence network for the frames now: the given `weights_path`, or
+        of the shipped ones the broad network (every sensor class and the broad poses in
+        training) for the sensor classes of BROAD_NETWORK_FOR (`sensor`: a preset's
+        class, or the class 'auto' measures), the original one (Kinect v1 noise and the
+        activity templates) otherwise."""
+        if self._broad_net is not None and self.noise.kind in BROAD_NETWORK_FOR:
+            return self._broad_net
+        return self._net
 
     @property
     def noise(self) -> NoiseModel:

@@ -51,6 +51,29 @@ def test_shipped_weights_are_small_and_useful(body):
     assert ids.min() >= 0 and ids.max() < body.num_vertices
 
 
+def test_broad_network_segments_stereo_crops_and_broad_poses_better(body):
+    """The second shipped network (every sensor class and the broad poses in training)
+    segments held-out stereo-camera crops of broad poses better than the original one
+    (Kinect v1 noise, activity templates), and is as small."""
+    from smpl_depth_ros.net.data import SampleConfig
+    from smpl_depth_ros.net.infer import broad_weights
+    from smpl_depth_ros.synth.sensors import SENSORS
+    path = broad_weights('anny')
+    assert path is not None and os.path.getsize(path) < 20e6
+    stereo = tuple(n for n, s in SENSORS.items() if s.kind == 'stereo')
+    cfg = SampleConfig(poses='broad', sensors=stereo)
+    x, labels, _, _ = make_fixed_set(body, 24, seed=4545, cfg=cfg)
+    gt = labels.numpy()
+
+    def miou(net):
+        lab, _ = net.predict(x.numpy())
+        return np.mean([((lab == c) & (gt == c)).sum() / max(((lab == c) | (gt == c)).sum(), 1)
+                        for c in range(1, 15) if (gt == c).any()])
+    broad, original = CorrespondenceNet(body, path), CorrespondenceNet(body)
+    assert broad.meta['poses'] == 'broad' and len(broad.meta['sensors']) > 5
+    assert miou(broad) > miou(original) + 0.05, (miou(broad), miou(original))
+
+
 def test_flip_tta_is_mirror_consistent_and_no_worse(body):
     """With flip_tta the prediction of a mirrored crop is exactly the mirrored prediction
     (left/right parts swapped, canonical x mirrored), which the plain pass is not; and it
@@ -307,15 +330,19 @@ def test_train_correspondence_runs_checkpoints_and_resumes(body, tmp_path):
     PNG and checkpoint are written; --resume continues from the checkpoint's step; the
     weights load for inference; --class-balance weighs small parts up, not background;
     --ema validates and saves the weight average, kept across --resume; --truncate sets
-    the training crops' truncation (recorded in the weights' meta)."""
+    the training crops' truncation (recorded in the weights' meta); --also-lr trains a
+    second network on the same samples into its own files."""
     import json
 
     from smpl_depth_ros.net import train
     out = tmp_path / 'w.pt'
     args = ['--out', str(out), '--steps', '3', '--batch', '2', '--workers', '0',
             '--val-size', '4', '--val-every', '2', '--ckpt-every', '2', '--seed', '3',
-            '--class-balance', '0.4', '--ema', '0.5', '--truncate', '1.0']
+            '--class-balance', '0.4', '--ema', '0.5', '--truncate', '1.0', '--also-lr', '1e-4']
     train.main(args)
+    other = torch.load(tmp_path / 'w.lr0.0001.pt', map_location='cpu', weights_only=True)
+    assert other['meta']['lr'] == 1e-4 and other['meta']['steps'] == 3
+    assert [e['step'] for e in json.loads((tmp_path / 'w.lr0.0001.log.json').read_text())] == [2, 3]
     log = json.loads((tmp_path / 'w.log.json').read_text())
     assert [e['step'] for e in log] == [2, 3] and 0 <= log[-1]['miou'] <= 1
     assert (tmp_path / 'w.val.png').exists() and (tmp_path / 'w.pt.ckpt').exists()

@@ -294,6 +294,7 @@ def test_stored_far_stereo_frame_is_reconstructed():
     Kinect thresholds (sensor 'none') no fit is accepted; with the shipped default
     (sensor 'auto', the noise measured from this one frame) the mesh is near the truth."""
     from smpl_depth_ros.config import PipelineConfig
+    from smpl_depth_ros.net.infer import broad_weights, default_weights
     from smpl_depth_ros.pipeline import Reconstructor
     from smpl_depth_ros.types import InputError
     f = np.load('test/data/stereo_d435_far.npz')
@@ -303,6 +304,17 @@ def test_stored_far_stereo_frame_is_reconstructed():
     err = np.linalg.norm(res.persons[0].vertices - f['vertices'], axis=1).mean() * 1e3
     assert err < 60.0, err
     assert rec.noise.kind == 'stereo'
+    # a stereo frame goes through the broad network (pipeline.BROAD_NETWORK_FOR), a
+    # Kinect one through the original; a given weights_path is used for every sensor
+    assert rec.net.path == broad_weights('anny')
+    kinect = np.load('test/data/val_s2_frame63.npz')
+    krec = Reconstructor(PipelineConfig(tracking=False, device='cpu'), body=rec.body)
+    krec.process(kinect['depth_mm'] / 1000.0, kinect['K'])
+    assert krec.noise.kind == 'structured_light' and krec.net.path == default_weights('anny')
+    given = Reconstructor(PipelineConfig(tracking=False, device='cpu',
+                                         weights_path=default_weights('anny')), body=rec.body)
+    given.process(depth, f['K'])
+    assert given.noise.kind == 'stereo' and given.net.path == default_weights('anny')
     fixed = Reconstructor(PipelineConfig(tracking=False, device='cpu', sensor='none'),
                           body=rec.body)
     try:

@@ -15,6 +15,14 @@ def default_weights(backend: str, kind: str = 'double') -> str:
     return str(resources.files('smpl_depth_ros') / 'data' / f'corr_{backend}_{kind}.pt')
 
 
+def broad_weights(backend: str) -> str | None:
+    """The second shipped double U-Net of a backend, trained on every sensor class
+    (synth.sensors noise, any resolution) and the broad poses (docs/TRAINING.md); None
+    when the backend has none (SMPL: the user trains their own)."""
+    path = str(resources.files('smpl_depth_ros') / 'data' / f'corr_{backend}_double_broad.pt')
+    return path if os.path.exists(path) else None
+
+
 class CorrespondenceNet:
     """Loads the shipped (or given) weights once; maps crops to vertex correspondences.
 

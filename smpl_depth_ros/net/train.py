@@ -152,7 +152,11 @@ def main(argv=None):
     ap.add_argument('--model-path', default='')
     ap.add_argument('--steps', type=int, default=6000)
     ap.add_argument('--batch', type=int, default=32)
-    ap.add_argument('--lr', type=float, default=3e-3)
+    ap.add_argument('--lr', type=float, default=3e-3, help='peak learning rate')
+    ap.add_argument('--also-lr', type=float, nargs='*', default=[], metavar='LR',
+                    help='also train one network per LR on the same samples (rendering, not '
+                         'the network, bounds a GPU run), each saved as <out stem>.lr<LR>.pt '
+                         'with its own log, its checkpoint <ckpt>.lr<LR>')
     ap.add_argument('--coord-weight', type=float, default=20.0)
     ap.add_argument('--class-balance', type=float, default=0.0,
                     help='weight each body part\'s cross-entropy by (its pixel share / the '
@@ -195,30 +199,24 @@ def main(argv=None):
 
     from smpl_depth_ros.body import load_body_model
     from smpl_depth_ros.net.data import SampleConfig, SyntheticDataset, make_fixed_set
-    from smpl_depth_ros.net.unet import INPUT_SIZE, build_network
+    from smpl_depth_ros.net.unet import INPUT_SIZE
 
     device = torch.device('cuda' if args.device == 'auto' and torch.cuda.is_available()
                           else ('cpu' if args.device == 'auto' else args.device))
     torch.manual_seed(args.seed)
-    net = build_network(args.kind).to(device)
-    opt = torch.optim.AdamW(net.parameters(), lr=args.lr, weight_decay=1e-4)
+    init_sd = None
     if args.init:
         sd = torch.load(args.init, map_location='cpu', weights_only=True)['state_dict']
-        net.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in sd.items()})
-    ckpt_path = args.ckpt or args.out + '.ckpt'
-    log_path = os.path.splitext(args.out)[0] + '.log.json'
-    step, log, ema_state = 0, [], None
-    if args.resume and os.path.exists(ckpt_path):
-        ck = load_checkpoint(ckpt_path, device)
-        net.load_state_dict(ck['net'])
-        opt.load_state_dict(ck['opt'])
-        step, log = ck['step'], ck['log']
-        ema_state = ck.get('ema')
-        print(f'resumed from {ckpt_path} at step {step}', file=sys.stderr)
-    ema = WeightAverage(net, args.ema) if args.ema else None
-    if ema is not None and ema_state is not None:
-        ema.net.load_state_dict(ema_state)
-    kept = net if ema is None else ema.net  # what is validated and saved
+        init_sd = {k: v.float() if v.is_floating_point() else v for k, v in sd.items()}
+    stem, ext = os.path.splitext(args.out)
+    ckpt = args.ckpt or args.out + '.ckpt'
+    runs = [_Run(args, args.lr, args.out, ckpt, device, init_sd)]
+    for lr in args.also_lr:
+        runs.append(_Run(args, lr, f'{stem}.lr{lr:g}{ext}', f'{ckpt}.lr{lr:g}', device,
+                         init_sd))
+    if args.resume:
+        for r in runs:
+            r.resume(device)
 
     def body_factory():
         return load_body_model(args.backend, args.model_path or None)
@@ -239,6 +237,7 @@ def main(argv=None):
     cw = class_weights(val[1], args.class_balance)
     cw = None if cw is None else cw.to(device)
     tcfg = scfg if args.truncate is None else replace(scfg, truncate=args.truncate)
+    step = runs[0].step
     ds = SyntheticDataset(body_factory, seed=args.seed * 1000 + step, cfg=tcfg)
     dl = torch.utils.data.DataLoader(ds, batch_size=args.batch, num_workers=args.workers,
                                      pin_memory=device.type == 'cuda',
@@ -247,6 +246,7 @@ def main(argv=None):
     meta = dict(kind=args.kind, backend=args.backend, input_size=INPUT_SIZE,
                 body_vertices=int(body.num_vertices), seed=args.seed, val_seed=args.val_seed,
                 truncate=tcfg.truncate, poses=tcfg.poses, sensors=list(tcfg.sensors),
+                rehearse=tcfg.rehearse, head_turn_deg=tcfg.head_turn_deg,
                 command='train_correspondence ' + ' '.join(argv if argv is not None
                                                             else sys.argv[1:]))
     try:
@@ -255,7 +255,6 @@ def main(argv=None):
     except ImportError:  # pragma: no cover
         bar = None
     t0 = time.time()
-    run_loss = None
 
     def progress(s):
         # Fraction of the run done: by steps, or by wall time when --max-minutes is set.
@@ -264,55 +263,103 @@ def main(argv=None):
             frac = max(frac, (time.time() - t0) / (60 * args.max_minutes))
         return min(frac, 1.0)
 
-    def lr_at(frac):
-        # 5 % linear warm-up, then cosine decay to 1 % of the peak.
-        if frac < 0.05:
-            return args.lr * (0.1 + 0.9 * frac / 0.05)
-        return args.lr * (0.01 + 0.99 * 0.5 * (1 + np.cos(np.pi * (frac - 0.05) / 0.95)))
-    net.train()
     it = iter(dl)
     while step < args.steps:
         x, labels, coords, cmask = next(it)
         x, labels = x.to(device, non_blocking=True), labels.to(device, non_blocking=True)
         coords, cmask = coords.to(device, non_blocking=True), cmask.to(device, non_blocking=True)
-        logits, cp = net(x)
-        loss, ce, l2 = losses(logits, cp, labels, coords, cmask, args.coord_weight, cw)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        for g in opt.param_groups:
-            g['lr'] = float(lr_at(progress(step)))
-        opt.step()
-        if ema is not None:
-            ema.update(net)
+        frac = progress(step)
+        for r in runs:
+            r.train_step(x, labels, coords, cmask, cw, frac)
         step += 1
-        lv = loss.item()
-        run_loss = lv if run_loss is None else 0.98 * run_loss + 0.02 * lv
         if bar is not None:
             bar.update(1)
-            bar.set_postfix(loss=f'{run_loss:.3f}')
+            bar.set_postfix(loss=f'{runs[0].run_loss:.3f}')
         last = progress(step) >= 1.0
-        if step % args.val_every == 0 or last:
-            ev = evaluate_batch(kept, *val)
-            if ema is not None:
-                ev['miou_live'] = evaluate_batch(net, *val)['miou']
-            ev.update(step=step, train_loss=run_loss, minutes=(time.time() - t0) / 60)
-            log.append(ev)
-            if bar is None or not sys.stderr.isatty():
-                print(json.dumps(ev), file=sys.stderr, flush=True)
-            plot_curves(log, os.path.splitext(args.out)[0] + '.val.png')
-            with open(log_path, 'w') as f:
-                json.dump(log, f, indent=1)
-        if step % args.ckpt_every == 0 or last:
-            torch.save(dict(net=net.state_dict(), opt=opt.state_dict(), step=step, log=log,
-                            ema=None if ema is None else ema.net.state_dict()), ckpt_path)
-            save_weights(kept, args.out, dict(meta, steps=step, val=log[-1] if log else None))
+        for r in runs:
+            r.step = step
+            if step % args.val_every == 0 or last:
+                ev = r.validate(val, minutes=(time.time() - t0) / 60)
+                if bar is None or not sys.stderr.isatty():
+                    print(json.dumps(dict(ev, lr=r.lr)), file=sys.stderr, flush=True)
+            if step % args.ckpt_every == 0 or last:
+                r.save(meta, checkpoint=True)
         if last:
             break
     if bar is not None:
         bar.close()
-    save_weights(kept, args.out, dict(meta, steps=step, val=log[-1] if log else None))
-    print(json.dumps(dict(out=args.out, steps=step, minutes=(time.time() - t0) / 60,
-                          val=log[-1] if log else None)))
+    for r in runs:
+        r.save(meta, checkpoint=False)
+        print(json.dumps(dict(out=r.out, lr=r.lr, steps=step, minutes=(time.time() - t0) / 60,
+                              val=r.log[-1] if r.log else None)))
+
+
+class _Run:
+    """One network being trained: its optimiser, weight average, log and files. Several
+    runs (--also-lr) share one stream of rendered samples."""
+
+    def __init__(self, args, lr, out, ckpt, device, init_sd):
+        from smpl_depth_ros.net.unet import build_network
+        self.args, self.lr, self.out, self.ckpt = args, lr, out, ckpt
+        self.net = build_network(args.kind).to(device)
+        if init_sd is not None:
+            self.net.load_state_dict(init_sd)
+        self.opt = torch.optim.AdamW(self.net.parameters(), lr=lr, weight_decay=1e-4)
+        self.log_path = os.path.splitext(out)[0] + '.log.json'
+        self.step, self.log, self.run_loss = 0, [], None
+        self.ema = WeightAverage(self.net, args.ema) if args.ema else None
+        self.kept = self.net if self.ema is None else self.ema.net  # validated and saved
+
+    def resume(self, device):
+        if not os.path.exists(self.ckpt):
+            return
+        ck = load_checkpoint(self.ckpt, device)
+        self.net.load_state_dict(ck['net'])
+        self.opt.load_state_dict(ck['opt'])
+        self.step, self.log = ck['step'], ck['log']
+        if self.ema is not None and ck.get('ema') is not None:
+            self.ema.net.load_state_dict(ck['ema'])
+        print(f'resumed from {self.ckpt} at step {self.step}', file=sys.stderr)
+
+    def lr_at(self, frac):
+        # 5 % linear warm-up, then cosine decay to 1 % of the peak.
+        if frac < 0.05:
+            return self.lr * (0.1 + 0.9 * frac / 0.05)
+        return self.lr * (0.01 + 0.99 * 0.5 * (1 + np.cos(np.pi * (frac - 0.05) / 0.95)))
+
+    def train_step(self, x, labels, coords, cmask, cw, frac):
+        self.net.train()
+        logits, cp = self.net(x)
+        loss, _, _ = losses(logits, cp, labels, coords, cmask, self.args.coord_weight, cw)
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        for g in self.opt.param_groups:
+            g['lr'] = float(self.lr_at(frac))
+        self.opt.step()
+        if self.ema is not None:
+            self.ema.update(self.net)
+        lv = loss.item()
+        self.run_loss = lv if self.run_loss is None else 0.98 * self.run_loss + 0.02 * lv
+
+    def validate(self, val, minutes):
+        ev = evaluate_batch(self.kept, *val)
+        if self.ema is not None:
+            ev['miou_live'] = evaluate_batch(self.net, *val)['miou']
+        ev.update(step=self.step, train_loss=self.run_loss, minutes=minutes)
+        self.log.append(ev)
+        plot_curves(self.log, os.path.splitext(self.out)[0] + '.val.png')
+        with open(self.log_path, 'w') as f:
+            json.dump(self.log, f, indent=1)
+        return ev
+
+    def save(self, meta, checkpoint):
+        if checkpoint:
+            torch.save(dict(net=self.net.state_dict(), opt=self.opt.state_dict(),
+                            step=self.step, log=self.log, lr=self.lr,
+                            ema=None if self.ema is None else self.ema.net.state_dict()),
+                       self.ckpt)
+        save_weights(self.kept, self.out, dict(meta, lr=self.lr, steps=self.step,
+                                               val=self.log[-1] if self.log else None))
 
 
 if __name__ == '__main__':
