@@ -13,6 +13,8 @@ $(STAMP): requirements.txt
 	$(BIN)/pip install -q --upgrade pip 2>&1 | grep -v '^WARNING: Location' || true
 	$(BIN)/pip install -q -r requirements.txt 2>&1 | grep -v '^WARNING: Location' || true
 	$(BIN)/python -c "import torch, rclpy, rosbags, anny, trimesh, embreex, depthai" 2>/dev/null
+	# No tf2_msgs wheel exists: generate tf2_msgs/msg/TFMessage (for the node's /tf).
+	$(BIN)/python -c "import tf2_msgs.msg" 2>/dev/null || bash resource/tf2_msgs/build.sh $(VENV)
 	touch $(STAMP)
 
 venv: $(STAMP)

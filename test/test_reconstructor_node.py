@@ -942,9 +942,11 @@ def test_subprocess_sigint_while_a_frame_is_processed(rclpy_context, real_core, 
 
 
 def test_tf_frames_of_two_people_where_tf2_msgs_is_installed(harness, core, scene):
-    """On a ROS install with tf2_msgs (not in the pip venv): /tf carries body_<id> for
-    each tracked person, parented to the depth frame, with the depth stamp."""
-    tf2 = pytest.importorskip('tf2_msgs.msg', reason='tf2_msgs is not installed (pip venv)')
+    """/tf carries body_<id> for each tracked person, parented to the depth frame, with
+    the depth stamp; the TFMessage type the node publishes (a ROS install's tf2_msgs, or
+    in the pip venv the one `make` generates from its definition) is Jazzy's: the type
+    hash its publisher advertises is the one every Jazzy /tf endpoint has."""
+    tf2 = pytest.importorskip('tf2_msgs.msg', reason='tf2_msgs is not installed')
     from smpl_depth_ros.synth.dataset import make_multi_sequence
     from smpl_depth_ros.synth.poses import PoseSampler
     body = core.body
@@ -965,3 +967,8 @@ def test_tf_frames_of_two_people_where_tf2_msgs_is_installed(harness, core, scen
         roots = {t.child_frame_id: t for m in got for t in m.transforms
                  if A.stamp_to_ns(t.header.stamp) == stamp and t.header.frame_id == FRAME}
         assert set(roots) == {str(n) for n in tracked.name}
+    pubs = [i for i in tester.node.get_publishers_info_by_topic('/tf')
+            if i.node_name == node.get_name()]
+    assert pubs and pubs[0].topic_type == 'tf2_msgs/msg/TFMessage'
+    assert str(pubs[0].topic_type_hash) == (  # `ros2 topic info -v /tf` on Jazzy
+        'RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087')
