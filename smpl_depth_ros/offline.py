@@ -1080,12 +1080,12 @@ def process_bag(bag: str | Path, out_dir: str | Path, *, config: PipelineConfig 
         opts = OutputOptions(**opts_d, export_meshes=export_meshes, mesh_dir=str(mesh_dir))
         n_depth = sum(t.count for t in src.topics if t.topic == depth_topic) if all(
             t.count is not None for t in src.topics if t.topic == depth_topic) else None
-        log(f"depth '{depth_topic}' ({n_depth if n_depth is not None else '?'} frames), "
-            f"camera_info '{info_topic}'; loading the model on {config.device} "
-            f'({workers} worker{"s" if workers > 1 else ""})')
-
         t_load = time.perf_counter()
         try:
+            # The message inside: a Ctrl-C as soon as it is out counts as during loading.
+            log(f"depth '{depth_topic}' ({n_depth if n_depth is not None else '?'} frames), "
+                f"camera_info '{info_topic}'; loading the model on {config.device} "
+                f'({workers} worker{"s" if workers > 1 else ""})')
             runner = (_InlineRunner(config, opts, reconstructor) if workers == 1 else
                       _PoolRunner(config, opts, workers, chunk_size))
         except KeyboardInterrupt:

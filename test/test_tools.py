@@ -80,3 +80,50 @@ def test_benchmark_net_writes_json(tmp_path):
         for key in ('net_ms_median', 'net_ms_p95', 'net_tta_ms_median', 'net_tta_ms_p95',
                     'lookup_ms_median', 'params'):
             assert res[kind][key] > 0, (kind, key)
+
+
+def test_mocap_retargeting_recovers_a_known_pose_and_the_shipped_poses_load(tmp_path):
+    """export_mocap_poses on a clip made from anny itself (a known pose's joints written
+    into the mocap skeleton's slots): the retargeted pose is the one that made it; and the
+    shipped poses (data/mocap_poses_anny.npz) load into PoseSampler(mode='mocap'), within
+    the joint limits, mirrored at random."""
+    import torch
+
+    from smpl_depth_ros.body import load_body_model
+    from smpl_depth_ros.synth.poses import PoseSampler
+    from smpl_depth_ros.tools import export_mocap_poses as emp
+    body = load_body_model('anny', dtype=torch.float64)
+    sampler = PoseSampler(body, mode='broad')
+    rng = np.random.default_rng(5)
+    canon = np.stack([sampler.sample_canonical(rng) for _ in range(3)])
+    p = body.zero_params(3)
+    p['pose'] = torch.as_tensor(canon @ sampler.C, dtype=body.dtype)
+    with torch.no_grad():
+        joints = body(**p).joints.numpy() @ np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]])
+    clip = np.zeros((3, len(emp.MOCAP_JOINTS), 3), np.float32)  # z up, as the mocap
+    names = list(body.joint_names)
+    for ours, theirs in emp.JOINT_MAP.items():
+        clip[:, emp.MOCAP_JOINTS.index(theirs)] = joints[:, names.index(ours)]
+    folder = tmp_path / 'holosoma_retargeting' / 'demo_data' / 'climb' / 'mocap_climb_seq_0'
+    folder.mkdir(parents=True)
+    np.save(folder / 'mocap_climb_seq_0_joint_positions_f0-3.npy', clip)
+    out = emp.retarget(emp.clip_files(str(tmp_path)), body, every=1, max_residual_m=0.05)
+    assert out['poses'].shape == (3, len(names) - 1, 3) and (out['residual_m'] < 0.01).all()
+    # Joint positions do not fix a bone's twist about its own axis: compare the bodies
+    # (mean shape, no global rotation) the poses make, not their rotation vectors.
+    def mesh(c):
+        q = body.zero_params(len(c))
+        q['pose'] = torch.as_tensor(np.asarray(c, np.float64) @ sampler.C, dtype=body.dtype)
+        with torch.no_grad():
+            return body(**q).vertices.numpy()
+    # (Nor the pelvis' pitch: anny's spine1 joint sits at the pelvis, so hips and spine
+    # can take it up. Each retargeted body is still nearest its own source's.)
+    got, true = mesh(out['poses']), mesh(canon)
+    pve = np.linalg.norm(got[:, None] - true[None], axis=-1).mean(-1)  # (retargeted, source)
+    assert (pve.argmin(1) == np.arange(3)).all() and np.diag(pve).max() < 0.1, pve
+    shipped = PoseSampler(body, mode='mocap')
+    assert len(shipped.mocap) > 1000
+    draws = np.stack([shipped.sample_canonical(rng) for _ in range(50)])
+    lo, hi = shipped.limits[..., 0], shipped.limits[..., 1]
+    assert ((draws >= lo - 1e-9) & (draws <= hi + 1e-9)).all()
+    assert np.degrees(np.linalg.norm(draws, axis=-1)).mean() > 10  # not the rest pose

@@ -169,7 +169,7 @@ def main(argv=None):
                     help='probability that a training body leaving the sensor image is '
                          'cropped as the sensor sees it (SampleConfig.truncate, default '
                          '0.5; the validation set keeps the default)')
-    ap.add_argument('--poses', default='templates', choices=['templates', 'broad'],
+    ap.add_argument('--poses', default='templates', choices=['templates', 'broad', 'mocap'],
                     help='training and validation poses (PoseSampler mode; default the '
                          'activity templates)')
     ap.add_argument('--sensors', default='', metavar='NAMES',

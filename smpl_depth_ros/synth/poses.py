@@ -13,7 +13,11 @@ generic joint names. Two distributions (`PoseSampler(mode=...)`):
   and amplitudes, and poses drawn uniformly within the anatomical joint limits, either
   independently per joint or left/right coupled (elbows and knees as hinges, within
   their flexion range). Postures with a whole-body tilt (on all fours, lying) carry a
-  root pitch or roll (`ROOT`, degrees) that the frame placement adds.
+  root pitch or roll (`ROOT`, degrees) that the frame placement adds;
+* 'mocap': real motion capture retargeted to anny (`data/mocap_poses_anny.npz`, written
+  by tools/export_mocap_poses from the climbing clips of holosoma-retargeting: 1,264
+  poses), mirrored at random, with a little noise, upright. For evaluation on motions
+  nobody designed; the other modes are what the networks were trained on.
 """
 from __future__ import annotations
 
@@ -21,6 +25,8 @@ import numpy as np
 import torch
 
 from smpl_depth_ros.body.base import BodyModel
+
+MODES = ('templates', 'broad', 'mocap')
 
 # Activity templates: generic joint -> canonical axis-angle in degrees. 'ELBOW' entries
 # are hinge flexion angles (about the elbow's own flexion axis), handled separately.
@@ -127,6 +133,21 @@ def _mirror_name(n: str) -> str:
     return n
 
 
+def mocap_poses(names: list[str]) -> np.ndarray:
+    """(N, P, 3) canonical poses of the shipped motion capture (data/mocap_poses_anny.npz)
+    for the fitted joints `names` (generic joint names; a joint the file lacks stays at
+    rest)."""
+    from importlib import resources
+    path = resources.files('smpl_depth_ros') / 'data' / 'mocap_poses_anny.npz'
+    with np.load(str(path), allow_pickle=False) as f:
+        poses, have = f['poses'].astype(np.float64), list(f['joint_names'])
+    out = np.zeros((len(poses), len(names), 3))
+    for i, n in enumerate(names):
+        if n in have:
+            out[:, i] = poses[:, have.index(n)]
+    return out
+
+
 def elbow_axes(body: BodyModel) -> dict[str, np.ndarray]:
     """Canonical flexion axis per elbow: rotating the rest forearm towards +z (forward)."""
     p = body.zero_params(1)
@@ -161,8 +182,8 @@ class PoseSampler:
 
     def __init__(self, body: BodyModel, noise_deg: float = 9.0, head_turn_deg: float = 0.0,
                  mode: str = 'templates', root_tilt: bool = True):
-        if mode not in ('templates', 'broad'):
-            raise ValueError(f"pose mode must be 'templates' or 'broad', got {mode!r}")
+        if mode not in MODES:
+            raise ValueError(f'pose mode must be one of {MODES}, got {mode!r}')
         self.body = body
         self.mode = mode
         self.root_tilt = bool(root_tilt)
@@ -180,6 +201,7 @@ class PoseSampler:
         w = np.array([BROAD_TEMPLATE_WEIGHTS[t] for t in self.postures])
         self.posture_weights = w / w.sum()
         self.hinges = [i for i, n in enumerate(self.names) if n.endswith(('_knee', '_elbow'))]
+        self.mocap = mocap_poses(self.names) if mode == 'mocap' else None
 
     def template(self, name: str, amplitude: float = 1.0, mirror: bool = False) -> np.ndarray:
         """(P, 3) canonical axis-angle (radians) of a template."""
@@ -196,14 +218,16 @@ class PoseSampler:
             if jn in self.names:
                 out[self.names.index(jn)] = np.deg2rad(val)
         out *= amplitude
-        if mirror:
-            m = np.zeros_like(out)
-            for i, n in enumerate(self.names):
-                j = self.names.index(_mirror_name(n)) if _mirror_name(n) in self.names else i
-                m[j] = out[i] * _MIRROR_AXES
-            # Elbow hinge axes are mirror images of each other, so the reflection is exact.
-            out = m
-        return out
+        return self.mirror(out) if mirror else out
+
+    def mirror(self, pose: np.ndarray) -> np.ndarray:
+        """(P, 3) canonical pose of the mirror-image person (left and right swapped)."""
+        m = np.zeros_like(pose)
+        for i, n in enumerate(self.names):
+            j = self.names.index(_mirror_name(n)) if _mirror_name(n) in self.names else i
+            m[j] = pose[i] * _MIRROR_AXES
+        # Elbow hinge axes are mirror images of each other, so the reflection is exact.
+        return m
 
     def clip(self, canon: np.ndarray) -> np.ndarray:
         return np.clip(canon, self.limits[..., 0], self.limits[..., 1])
@@ -248,6 +272,12 @@ class PoseSampler:
         root = np.zeros(2)
         if self.mode == 'templates':
             return self.sample_canonical(rng), root
+        if self.mode == 'mocap':
+            pose = self.mocap[rng.integers(len(self.mocap))].astype(np.float64)
+            self.last_mirror = bool(rng.random() < 0.5)
+            pose = self.mirror(pose) if self.last_mirror else pose
+            pose = pose + rng.normal(0, np.deg2rad(3.0), pose.shape)
+            return self._head(rng, pose), root
         kinds = list(BROAD_MIX)
         k = kinds[rng.choice(len(kinds), p=np.array(list(BROAD_MIX.values())))]
         if k == 'templates':
@@ -283,7 +313,7 @@ class PoseSampler:
 
     def sample_canonical(self, rng: np.random.Generator) -> np.ndarray:
         """(P, 3) canonical pose (any whole-body tilt of a 'broad' posture dropped)."""
-        if self.mode == 'broad':
+        if self.mode in ('broad', 'mocap'):
             return self.sample_with_root(rng)[0]
         t = self.templates[rng.choice(len(self.templates), p=self.weights)]
         amp = rng.uniform(0.3, 1.15)

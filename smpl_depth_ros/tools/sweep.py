@@ -192,7 +192,7 @@ def build_parser() -> argparse.ArgumentParser:
                     metavar=('FROM', 'TO', 'STEP'), help='root depth bins (metres)')
     ap.add_argument('--frames', type=int, default=10, help='subjects per sensor and bin')
     ap.add_argument('--seed', type=int, default=101)
-    ap.add_argument('--poses', default='templates', choices=['templates', 'broad'])
+    ap.add_argument('--poses', default='templates', choices=['templates', 'broad', 'mocap'])
     ap.add_argument('--strength', type=float, default=1.0, help='noise strength')
     ap.add_argument('--json', default=None)
     ap.add_argument('--plot', default=None, help='PNG of PVE and recall against distance')

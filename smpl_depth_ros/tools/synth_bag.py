@@ -66,9 +66,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help='a sensor preset: its camera and noise model (overrides --camera)')
     ap.add_argument('--strength', type=float, default=1.0,
                     help='noise strength of --sensor (1 = nominal)')
-    ap.add_argument('--poses', default='templates', choices=['templates', 'broad'],
+    ap.add_argument('--poses', default='templates', choices=['templates', 'broad', 'mocap'],
                     help="'templates': the activity templates; 'broad': postures beyond "
-                         'them and uniform draws within the joint limits (synth.poses)')
+                         "them and uniform draws within the joint limits; 'mocap': real "
+                         'motion capture retargeted to anny (synth.poses)')
     ap.add_argument('--depth-range', type=float, nargs=2, default=None, metavar=('MIN', 'MAX'),
                     help='root depth range in metres (default 1 5)')
     ap.add_argument('--width', type=int, default=None, help='resample the camera preset')
