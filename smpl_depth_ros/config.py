@@ -70,7 +70,8 @@ class PipelineConfig:
 
     backend: str = 'anny'             # 'anny' | 'smpl'
     model_path: str = ''              # SMPL file (or env SMPL_MODEL_PATH); anny: optional
-    weights_path: str = ''            # '' = the weights shipped for the backend
+    weights_path: str = ''            # '' = the weights shipped for the backend (for anny:
+                                      # per sensor class, pipeline.BROAD_NETWORK_FOR)
     device: str = 'auto'              # 'auto' | 'cpu' | 'cuda'
     depth_min: float = 0.5            # metres; person search range
     depth_max: float = 6.0

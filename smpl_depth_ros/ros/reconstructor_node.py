@@ -51,8 +51,8 @@ NODE_NAME = 'reconstructor'
 _CORE_DOC = {
     'backend': "body model backend: 'anny' (shipped) or 'smpl' (your own model file)",
     'model_path': 'SMPL model file or directory (or env SMPL_MODEL_PATH); anny: optional',
-    'weights_path': "correspondence network weights ('' = the weights shipped for the "
-                    'backend)',
+    'weights_path': "correspondence network weights ('' = the shipped ones: the broad "
+                    'network for stereo sensors, the original for the others)',
     'device': "torch device: 'auto' (CUDA when available), 'cpu' or 'cuda'; a change "
               'reloads the model',
     'depth_min': 'person search range: nearest depth (metres)',
