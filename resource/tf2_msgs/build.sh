@@ -7,6 +7,11 @@
 #
 #   resource/tf2_msgs/build.sh VENV
 set -euo pipefail
+if ! command -v cmake > /dev/null || ! command -v cc > /dev/null; then
+    echo "warning: cmake or a C compiler is missing: tf2_msgs is not generated, and the" \
+         "node will not publish /tf in this venv (install them, then run: $0 VENV)" >&2
+    exit 0
+fi
 venv=$(cd "$1" && pwd)
 src=$(cd "$(dirname "$0")" && pwd)
 build=$(mktemp -d)
