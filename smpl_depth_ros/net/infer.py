@@ -19,7 +19,7 @@ def broad_weights(backend: str) -> str | None:
     """The second shipped double U-Net of a backend, trained on every sensor class
     (synth.sensors noise, any resolution) and the broad poses (docs/TRAINING.md); None
     when the backend has none (SMPL: the user trains their own)."""
-    path = str(resources.files('smpl_depth_ros') / 'data' / f'corr_{backend}_double_broad.pt')
+    path = default_weights(backend, 'double_broad')
     return path if os.path.exists(path) else None
 
 

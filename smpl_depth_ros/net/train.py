@@ -144,6 +144,7 @@ def save_weights(net, path, meta):
 
 
 def main(argv=None):
+    from smpl_depth_ros.synth.poses import MODES
     ap = argparse.ArgumentParser(prog='train_correspondence', description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('--out', required=True, help='weights file (.pt)')
@@ -169,7 +170,7 @@ def main(argv=None):
                     help='probability that a training body leaving the sensor image is '
                          'cropped as the sensor sees it (SampleConfig.truncate, default '
                          '0.5; the validation set keeps the default)')
-    ap.add_argument('--poses', default='templates', choices=['templates', 'broad', 'mocap'],
+    ap.add_argument('--poses', default='templates', choices=MODES,
                     help='training and validation poses (PoseSampler mode; default the '
                          'activity templates)')
     ap.add_argument('--sensors', default='', metavar='NAMES',
@@ -301,7 +302,7 @@ class _Run:
     def __init__(self, args, lr, out, ckpt, device, init_sd):
         from smpl_depth_ros.net.unet import build_network
         self.args, self.lr, self.out, self.ckpt = args, lr, out, ckpt
-        self.net = build_network(args.kind).to(device)
+        self.net = build_network(args.kind).to(device).train()  # evaluate_batch restores it
         if init_sd is not None:
             self.net.load_state_dict(init_sd)
         self.opt = torch.optim.AdamW(self.net.parameters(), lr=lr, weight_decay=1e-4)
@@ -328,7 +329,6 @@ class _Run:
         return self.lr * (0.01 + 0.99 * 0.5 * (1 + np.cos(np.pi * (frac - 0.05) / 0.95)))
 
     def train_step(self, x, labels, coords, cmask, cw, frac):
-        self.net.train()
         logits, cp = self.net(x)
         loss, _, _ = losses(logits, cp, labels, coords, cmask, self.args.coord_weight, cw)
         self.opt.zero_grad(set_to_none=True)

@@ -2,7 +2,7 @@
 
     sweep --json results/sweep_test.json --plot results/sweep_test.png \\
           [--sensors all] [--bins 1.0 5.0 0.5] [--frames 10] [--seed 101] \\
-          [--poses templates|broad] [-p NAME=VALUE ...]
+          [--poses templates|broad|mocap] [-p NAME=VALUE ...]
 
 For every sensor preset (synth.sensors: its camera and noise model) and every depth bin,
 the same `--frames` subjects (shape, pose, yaw: frame i draws from the generator seeded
@@ -184,6 +184,7 @@ def plot(rows, path: str, title: str = '') -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from smpl_depth_ros.synth.poses import MODES
     ap = argparse.ArgumentParser(prog='sweep', description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('--sensors', default='all',
@@ -192,7 +193,7 @@ def build_parser() -> argparse.ArgumentParser:
                     metavar=('FROM', 'TO', 'STEP'), help='root depth bins (metres)')
     ap.add_argument('--frames', type=int, default=10, help='subjects per sensor and bin')
     ap.add_argument('--seed', type=int, default=101)
-    ap.add_argument('--poses', default='templates', choices=['templates', 'broad', 'mocap'])
+    ap.add_argument('--poses', default='templates', choices=MODES)
     ap.add_argument('--strength', type=float, default=1.0, help='noise strength')
     ap.add_argument('--json', default=None)
     ap.add_argument('--plot', default=None, help='PNG of PVE and recall against distance')

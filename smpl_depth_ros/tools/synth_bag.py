@@ -56,6 +56,7 @@ def topology_name(body) -> str:
 
 def build_parser() -> argparse.ArgumentParser:
     from smpl_depth_ros.synth.camera import CAMERAS
+    from smpl_depth_ros.synth.poses import MODES
     ap = argparse.ArgumentParser(prog='synth_bag', description=__doc__.split('\n')[0])
     ap.add_argument('--out', required=True, help='bag directory to create (must not exist)')
     ap.add_argument('--frames', type=int, default=200)
@@ -66,7 +67,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help='a sensor preset: its camera and noise model (overrides --camera)')
     ap.add_argument('--strength', type=float, default=1.0,
                     help='noise strength of --sensor (1 = nominal)')
-    ap.add_argument('--poses', default='templates', choices=['templates', 'broad', 'mocap'],
+    ap.add_argument('--poses', default='templates', choices=MODES,
                     help="'templates': the activity templates; 'broad': postures beyond "
                          "them and uniform draws within the joint limits; 'mocap': real "
                          'motion capture retargeted to anny (synth.poses)')
