@@ -102,8 +102,10 @@ def main(argv=None) -> int:
     ap.add_argument('--every', type=int, default=10, help='take every n-th frame')
     ap.add_argument('--max-residual-m', type=float, default=0.05)
     args = ap.parse_args(argv)
+    import torch
+
     from smpl_depth_ros.body import load_body_model
-    body = load_body_model('anny', dtype=__import__('torch').float64)
+    body = load_body_model('anny', dtype=torch.float64)
     data = retarget(clip_files(args.source), body, args.every, args.max_residual_m)
     np.savez_compressed(args.out, **data)
     print(f'{args.out}: {len(data["poses"])} poses from {len(data["clips"])} clips, mean '
