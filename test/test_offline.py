@@ -29,8 +29,9 @@ import pytest
 from smpl_depth_ros import offline
 from smpl_depth_ros.config import PipelineConfig
 from smpl_depth_ros.offline import (NODE_OPTIONS, OUTPUTS, BagReadError, ProcessBagError,
-                                    Topic, _Progress, config_from_params, load_params_file,
-                                    main, parse_param_overrides, process_bag, select_topics)
+                                    Topic, config_from_params, load_params_file, main,
+                                    parse_param_overrides, process_bag, select_topics)
+from smpl_depth_ros.offline.run import _Progress
 
 REPO = Path(__file__).resolve().parents[1]
 PARAMS_FILE = REPO / 'config' / 'reconstructor.yaml'
@@ -333,7 +334,7 @@ def test_existing_output_and_late_camera_info(core, seq_msgs, tmp_path, capsys, 
         process_bag(bag, bag / 'inside', **QUIET)
     # At most MAX_WAITING_FOR_INFO frames wait for their camera_info; older ones are
     # skipped with the reason, the rest processed when it comes.
-    monkeypatch.setattr(offline, 'MAX_WAITING_FOR_INFO', 2)
+    monkeypatch.setattr(offline.run, 'MAX_WAITING_FOR_INFO', 2)
     summary = process_bag(bag, out, overwrite=True, reconstructor=core, **QUIET)
     assert summary['frames_read'] == 3 and summary['skipped'] == {'no_camera_info': 1}
     assert summary['processed'] == 2 and (out / 'notes.txt').read_text() == 'mine'

@@ -1,0 +1,108 @@
+"""process_bag: run the reconstructor over a recorded ROS 2 bag, every frame accounted for.
+
+The command line (`main`, console script `process_bag`): options and the node's parameters
+(``--params-file``, ``-p``) into `process_bag()`, SIGTERM taken as Ctrl-C, the summary
+JSON on stdout, and the exit code. What a run reads and writes: the package docstring.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import threading
+from dataclasses import replace
+
+from smpl_depth_ros.offline.errors import BagReadError, InterruptedBeforeStart, ProcessBagError
+from smpl_depth_ros.offline.params import (config_from_params, load_params_file,
+                                           parse_param_overrides)
+from smpl_depth_ros.offline.run import DEFAULT_NS, MESH_FORMATS, PROG, process_bag
+
+EXIT_OK, EXIT_USAGE, EXIT_DAMAGED, EXIT_INTERRUPTED = 0, 1, 3, 130
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog=PROG, description=__doc__.split('\n')[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter,
+                                 epilog='Exit codes: 0 done, 1 unusable input/options, '
+                                        '3 damaged bag (partial results kept), 130 interrupted.')
+    ap.add_argument('bag', help='rosbag2 directory, or a .mcap / .db3 file')
+    ap.add_argument('--out', required=True, help='output directory')
+    ap.add_argument('--depth-topic', default=None, help='sensor_msgs/Image depth topic '
+                    '(default: the only candidate)')
+    ap.add_argument('--info-topic', default=None, help='sensor_msgs/CameraInfo topic '
+                    '(default: the only candidate)')
+    ap.add_argument('--params-file', default=None,
+                    help="the node's parameter YAML (e.g. config/reconstructor.yaml)")
+    ap.add_argument('-p', '--param', action='append', default=[], metavar='NAME=VALUE',
+                    help="override one node parameter, e.g. -p fit.iterations=10")
+    ap.add_argument('--device', default=None, choices=['auto', 'cpu', 'cuda'])
+    ap.add_argument('--no-tracking', action='store_true',
+                    help='fit every frame cold (no warm start from the previous one)')
+    ap.add_argument('--storage', default='mcap', choices=['mcap', 'sqlite3'],
+                    help='output bag storage')
+    ap.add_argument('--compress', action='store_true', help='zstd-compressed MCAP chunks')
+    ap.add_argument('--export-meshes', default=None, choices=MESH_FORMATS,
+                    help='also write one mesh file per frame (named by stamp)')
+    ap.add_argument('--workers', type=int, default=1, help='processes (default 1)')
+    ap.add_argument('--chunk-size', type=int, default=32,
+                    help='frames per worker task; tracking restarts at each (default 32)')
+    ap.add_argument('--output-ns', default=DEFAULT_NS,
+                    help=f'namespace of the output topics (default {DEFAULT_NS})')
+    ap.add_argument('--overwrite', action='store_true',
+                    help='replace the outputs of a previous run in --out')
+    ap.add_argument('--quiet', action='store_true', help='no progress, no log lines')
+    return ap
+
+
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    main_thread = threading.current_thread() is threading.main_thread()
+    # SIGTERM as Ctrl-C: the output bag is closed properly and the summary written.
+    previous = signal.signal(signal.SIGTERM, _interrupt) if main_thread else None
+    try:
+        return _run_cli(args)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _run_cli(args) -> int:
+    log = (lambda m: None) if args.quiet else (
+        lambda m: print(f'{PROG}: {m}', file=sys.stderr, flush=True))
+    try:
+        params = load_params_file(args.params_file) if args.params_file else {}
+        params.update(parse_param_overrides(args.param))
+        config, options, ignored = config_from_params(params)
+        if args.device:
+            config = replace(config, device=args.device)
+        if args.no_tracking:
+            config = replace(config, tracking=False)
+        if ignored:
+            log(f'ignoring live-only parameter(s): {", ".join(sorted(ignored))}')
+        summary = process_bag(
+            args.bag, args.out, config=config, options=options, depth_topic=args.depth_topic,
+            info_topic=args.info_topic, storage=args.storage, compress=args.compress,
+            export_meshes=args.export_meshes, workers=args.workers,
+            chunk_size=args.chunk_size, overwrite=args.overwrite, output_ns=args.output_ns,
+            progress=not args.quiet, log=log)
+    except (ProcessBagError, BagReadError) as e:
+        print(f'{PROG}: error: {e}', file=sys.stderr)
+        return EXIT_USAGE
+    except InterruptedBeforeStart as e:
+        print(f'{PROG}: {e}', file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except KeyboardInterrupt:  # before the bag was opened
+        print(f'{PROG}: interrupted before any frame was processed', file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except (RuntimeError, ValueError, FileNotFoundError) as e:  # model/device problems
+        print(f'{PROG}: error: {type(e).__name__}: {e}', file=sys.stderr)
+        return EXIT_USAGE
+    print(json.dumps(summary))
+    if summary['interrupted']:
+        return EXIT_INTERRUPTED
+    return EXIT_DAMAGED if summary['error'] else EXIT_OK

@@ -1,0 +1,275 @@
+"""Per-frame work, in this process or in worker processes: a `Job` (one depth frame
+ready for the pipeline) in, an `Outcome` (processed or skipped, with its serialised output
+messages) out. `FrameProcessor` is one Reconstructor plus the node's message builders;
+a runner feeds it jobs.
+
+The runner interface, as `run._BagRun` drives it (`_InlineRunner`, `_PoolRunner`; a new
+runner implements all of it):
+
+* ``info``: `FrameProcessor.info()` of the loaded model (body, device, joint and shape
+  names, sizes), set by the constructor, which loads the model (a Ctrl-C while it does
+  propagates as KeyboardInterrupt);
+* ``submit(job, ready)``: take one job; its `Outcome` goes into ``ready`` (index ->
+  Outcome) now or on a later call of any method below;
+* ``poll(ready, block)``: put the outcomes that are done into ``ready``; ``block``: wait
+  for the oldest work in flight first;
+* ``pending()``: the number of jobs submitted whose outcomes are not in ``ready`` yet;
+* ``flush(ready)``: start what is buffered (a partial chunk), at the end of the bag and
+  whenever the caller waits for a frame; it may block to bound the work in flight;
+* ``close(interrupted=False)``: release the workers; ``interrupted``: without waiting for
+  the work in progress.
+
+Every submitted job ends as exactly one `Outcome` in ``ready`` (work lost with a worker:
+status 'internal' for each of its frames); outcomes may come in any order, the caller
+writes them in input order. Tracking lives in the runner: `_InlineRunner` tracks across
+the whole bag, `_PoolRunner` restarts tracking at each chunk and keeps person IDs unique
+across chunks. Jobs and outcomes are plain picklable data (numpy arrays, strings, bytes),
+so they can travel to other processes.
+"""
+from __future__ import annotations
+
+import os
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from smpl_depth_ros.config import PipelineConfig
+from smpl_depth_ros.ros.outputs import TOPICS, FrameOutputs
+from smpl_depth_ros.ros.outputs import OutputOptions as MessageOptions
+from smpl_depth_ros.types import InputError
+
+# Output key -> (topic under the namespace, or absolute; message type), as the node
+# publishes (ros.outputs).
+OUTPUTS = TOPICS
+
+
+@dataclass
+class Job:
+    """A depth frame ready for the pipeline."""
+
+    index: int
+    stamp_ns: int
+    frame_id: str
+    depth: np.ndarray
+    K: np.ndarray
+    reset: bool = False        # reset tracking first (time went backwards)
+    mesh_name: str = ''        # file stem for --export-meshes
+
+
+@dataclass
+class Outcome:
+    """What happened to one depth frame (processed or skipped)."""
+
+    index: int
+    status: str                       # 'ok' or the skip reason
+    message: str = ''
+    stamp_ns: int = -1
+    frame_id: str = ''
+    persons: int = 0
+    params: dict | None = None        # first person: pose, shape, global_orient, transl
+    residual_m: float = float('nan')
+    num_points: int = 0
+    tracked: bool = False
+    timings_ms: dict = field(default_factory=dict)
+    outputs: list = field(default_factory=list)   # (output key, CDR bytes)
+    mesh_files: list = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class OutputOptions(MessageOptions):
+    """How outputs are built (the node's publish_* and mesh parameters, ros.outputs) and
+    where meshes are exported."""
+
+    export_meshes: str | None = None
+    mesh_dir: str = ''
+
+
+class FrameProcessor:
+    """One Reconstructor plus the message builders of `ros.adapters` (rosbags flavour)."""
+
+    def __init__(self, config: PipelineConfig, opts: OutputOptions, reconstructor=None):
+        from smpl_depth_ros.pipeline import Reconstructor
+        from smpl_depth_ros.ros import adapters as A
+        self.A = A
+        self.opts = opts
+        self.rec = reconstructor if reconstructor is not None else Reconstructor(config)
+        self.body = self.rec.body
+        self.msgs = A.rosbags_factory()
+        self.typestore = self.msgs.typestore
+        self.faces = self.body.faces_numpy()
+        self.outputs = FrameOutputs(self.body, self.rec.fitter.joint_frames,
+                                    opts, self.msgs)
+
+    def info(self) -> dict:
+        return dict(body=self.body.name, device=str(self.rec.device),
+                    joint_names=list(self.body.joint_names[1:]),
+                    shape_names=list(self.body.shape_names),
+                    num_pose=int(self.body.num_pose_joints), num_shape=int(self.body.num_shape))
+
+    def run(self, job: Job) -> Outcome:
+        if job.reset:
+            self.rec.reset()
+            self.outputs.forget()
+        out = Outcome(job.index, 'ok', stamp_ns=job.stamp_ns, frame_id=job.frame_id)
+        try:
+            res = self.rec.process(job.depth, job.K, stamp_ns=job.stamp_ns)
+        except InputError as e:
+            out.status, out.message = e.reason, str(e)
+            return out
+        except Exception as e:  # noqa: BLE001 - one bad frame must not stop the run
+            out.status, out.message = 'internal', f'{type(e).__name__}: {e}'
+            return out
+        t0 = time.perf_counter()
+        persons = list(res.persons)[:max(1, self.rec.config.max_persons)]
+        out.persons = len(persons)
+        if persons:
+            p = persons[0]
+            out.params = {k: np.asarray(getattr(p.params, k), np.float32)
+                          for k in ('pose', 'shape', 'global_orient', 'transl')}
+            out.residual_m = float(p.residual_m)
+            out.num_points = int(p.num_points)
+            out.tracked = bool(getattr(p, 'tracked', False))
+        try:
+            out.outputs = self._messages(res, persons, job)
+            if self.opts.export_meshes:
+                out.mesh_files = self._export(persons, job)
+        except Exception as e:  # noqa: BLE001 - e.g. a full disk: the frame is not written
+            out.status, out.message = 'internal', f'writing outputs: {type(e).__name__}: {e}'
+            out.outputs, out.params = [], None
+        timings = dict(res.timings_ms)
+        timings['outputs'] = (time.perf_counter() - t0) * 1e3
+        out.timings_ms = timings
+        return out
+
+    def _messages(self, res, persons, job: Job) -> list[tuple[str, bytes]]:
+        header = self.A.make_header(None, self.msgs, stamp_ns=job.stamp_ns,
+                                    frame_id=job.frame_id)
+        ts = self.typestore
+        return [(k, m if isinstance(m, bytes) else bytes(ts.serialize_cdr(m, OUTPUTS[k][1])))
+                for k, m in self.outputs.build(res, persons, header)]
+
+    def _export(self, persons, job: Job) -> list[str]:
+        import trimesh
+        paths = []
+        for i, person in enumerate(persons):
+            name = job.mesh_name + (f'_p{i}' if i else '')
+            path = os.path.join(self.opts.mesh_dir, f'{name}.{self.opts.export_meshes}')
+            mesh = trimesh.Trimesh(np.asarray(person.vertices, np.float64), self.faces,
+                                   process=False)
+            mesh.export(path)
+            paths.append(path)
+        return paths
+
+
+# Worker processes (--workers): one FrameProcessor each, chunks of contiguous frames.
+_WORKER: FrameProcessor | None = None
+
+
+def _worker_init(config: PipelineConfig, opts: OutputOptions, threads: int):
+    global _WORKER
+    import torch
+    torch.set_num_threads(max(1, threads))
+    _WORKER = FrameProcessor(config, opts)
+
+
+def _worker_info() -> dict:
+    return _WORKER.info()
+
+
+def _worker_chunk(jobs: list[Job]) -> list[Outcome]:
+    _WORKER.rec.reset()  # tracking holds within a chunk only
+    _WORKER.outputs.forget()
+    if jobs:  # person IDs unique across chunks: a chunk's start at most max_persons a frame
+        _WORKER.rec.tracker.start_ids_at(
+            1 + jobs[0].index * max(1, _WORKER.rec.config.max_persons))
+    return [_WORKER.run(j) for j in jobs]
+
+
+class _InlineRunner:
+    """Frames processed here, one by one, tracking across the whole bag."""
+
+    def __init__(self, config, opts, reconstructor=None):
+        if reconstructor is not None:  # an already loaded core: give it this run's config
+            reconstructor.config = config
+            if hasattr(reconstructor, 'set_fit_config'):  # a fresh fitter: same random
+                reconstructor.set_fit_config(config.fit)  # subsets as a fresh core
+            reconstructor.reset()
+        self.proc = FrameProcessor(config, opts, reconstructor)
+        self.info = self.proc.info()
+
+    def submit(self, job: Job, ready: dict):
+        ready[job.index] = self.proc.run(job)
+
+    def poll(self, ready: dict, block: bool):
+        pass
+
+    def pending(self) -> int:
+        return 0
+
+    def flush(self, ready):
+        pass
+
+    def close(self, interrupted: bool = False):
+        pass
+
+
+class _PoolRunner:
+    """Frames processed by `workers` processes in contiguous chunks (order kept by the
+    caller's reorder queue)."""
+
+    def __init__(self, config, opts, workers: int, chunk: int):
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+        threads = max(1, (os.cpu_count() or 1) // workers)
+        self.pool = ProcessPoolExecutor(workers, mp_context=mp.get_context('spawn'),
+                                        initializer=_worker_init,
+                                        initargs=(config, opts, threads))
+        self.chunk_size = max(1, chunk)
+        self.max_inflight = workers + 1
+        self.current: list[Job] = []
+        self.inflight: deque = deque()
+        self.info = self.pool.submit(_worker_info).result()
+
+    def submit(self, job: Job, ready: dict):
+        self.current.append(job)
+        if len(self.current) >= self.chunk_size:
+            self.flush(ready)
+
+    def flush(self, ready: dict):
+        if self.current:
+            jobs, self.current = self.current, []
+            self.inflight.append((self.pool.submit(_worker_chunk, jobs), jobs))
+        while len(self.inflight) > self.max_inflight:
+            self._collect(ready, block=True)
+
+    def _collect(self, ready, block: bool):
+        while self.inflight and (block or self.inflight[0][0].done()):
+            fut, jobs = self.inflight.popleft()
+            try:
+                for o in fut.result():
+                    ready[o.index] = o
+            except Exception as e:  # noqa: BLE001 - a worker died: account for its frames
+                for j in jobs:
+                    ready[j.index] = Outcome(j.index, 'internal', f'worker failed: '
+                                             f'{type(e).__name__}: {e}', j.stamp_ns,
+                                             j.frame_id)
+            block = False
+
+    def poll(self, ready: dict, block: bool):
+        self._collect(ready, block)
+
+    def pending(self) -> int:
+        return len(self.current) + sum(len(j) for _, j in self.inflight)
+
+    def close(self, interrupted: bool = False):
+        if not interrupted:
+            self.pool.shutdown(wait=True, cancel_futures=True)
+            return
+        procs = list((getattr(self.pool, '_processes', None) or {}).values())
+        self.pool.shutdown(wait=False, cancel_futures=True)
+        for proc in procs:  # do not wait for the chunks in progress
+            proc.terminate()
+        for proc in procs:
+            proc.join(5.0)
