@@ -55,17 +55,17 @@ import tempfile
 import threading
 import time
 from collections import Counter, deque
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, replace
 from io import BytesIO
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from smpl_depth_ros.config import FitConfig, PipelineConfig
-from smpl_depth_ros.ros.outputs import OUTPUT_PARAMS, TOPICS, FrameOutputs
-from smpl_depth_ros.ros.outputs import OutputOptions as MessageOptions
-from smpl_depth_ros.sensor_noise import check_sensor
+from smpl_depth_ros.config import PipelineConfig
+from smpl_depth_ros import params as P
+from smpl_depth_ros.config import OutputOptions as MessageOptions
+from smpl_depth_ros.ros.outputs import TOPICS, FrameOutputs
 from smpl_depth_ros.types import InputError
 
 PROG = 'process_bag'
@@ -81,10 +81,9 @@ OUTPUTS = TOPICS
 TIMING_NAMES = ('preprocess', 'network', 'correspondence', 'fit', 'labels', 'total',
                 'outputs')
 MESH_FORMATS = ('ply', 'obj', 'glb')
-# Node parameters that matter offline (the rest are about QoS and live diagnostics).
-NODE_OPTIONS = {k: v for k, (v, _) in OUTPUT_PARAMS.items()}
-NODE_ONLY = {'qos_reliability', 'qos_depth', 'diagnostics_period_s', 'warn_throttle_s',
-             'cpu_threads'}  # offline: threads follow --workers
+# The node's output parameters, which matter offline (its QoS, threads and diagnostics
+# parameters do not: threads follow --workers).
+NODE_OPTIONS = asdict(MessageOptions())
 EXIT_OK, EXIT_USAGE, EXIT_DAMAGED, EXIT_INTERRUPTED = 0, 1, 3, 130
 
 
@@ -107,129 +106,13 @@ class BagReadError(RuntimeError):
 
 
 # -- parameters -------------------------------------------------------------------------
-def _flatten(d: dict, prefix: str = '') -> dict[str, Any]:
-    out = {}
-    for k, v in d.items():
-        name = f'{prefix}{k}'
-        if isinstance(v, dict):
-            out.update(_flatten(v, name + '.'))
-        else:
-            out[name] = v
-    return out
-
-
-def load_params_file(path: str | Path, node_name: str = 'reconstructor') -> dict[str, Any]:
-    """The node's parameters from a ROS 2 params YAML, flattened ('fit.iterations').
-
-    Sections keyed ``/**`` (or ``**``) apply, then the ones naming the node (``reconstructor``,
-    ``/reconstructor``, ``/<ns>/reconstructor``, ``/**/reconstructor``), later ones winning,
-    as in ROS.
-    """
-    import yaml
-    try:
-        with open(path) as f:
-            data = yaml.safe_load(f) or {}
-    except (OSError, yaml.YAMLError) as e:
-        raise ProcessBagError(f'cannot read params file {path}: {e}') from None
-    if not isinstance(data, dict):
-        raise ProcessBagError(f'params file {path}: expected a mapping at the top level')
-    generic, specific = {}, {}
-    for key, section in data.items():
-        if not isinstance(section, dict) or 'ros__parameters' not in section:
-            continue
-        params = section['ros__parameters'] or {}
-        if not isinstance(params, dict):
-            raise ProcessBagError(f'params file {path}: {key}: ros__parameters must be a '
-                                  f'mapping, got {type(params).__name__}')
-        params = _flatten(params)
-        k = str(key).strip('/')
-        if k in ('**', ''):
-            generic.update(params)
-        elif k.split('/')[-1] == node_name:
-            specific.update(params)
-    return {**generic, **specific}
-
-
-def _coerce(name: str, value, default):
-    if isinstance(default, bool):
-        if not isinstance(value, bool):
-            raise ProcessBagError(f'parameter {name} must be true/false, got {value!r}')
-        return value
-    if isinstance(default, int):
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ProcessBagError(f'parameter {name} must be an integer, got {value!r}')
-        return value
-    if isinstance(default, float):
-        if isinstance(value, str):  # YAML 1.1 reads 1e-5 (no dot) as a string; ROS doesn't
-            try:
-                value = float(value)
-            except ValueError:
-                pass
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ProcessBagError(f'parameter {name} must be a number, got {value!r}')
-        return float(value)
-    if not isinstance(value, str):
-        raise ProcessBagError(f'parameter {name} must be a string, got {value!r}')
-    return value
-
-
 def config_from_params(params: dict[str, Any], base: PipelineConfig | None = None
                        ) -> tuple[PipelineConfig, dict[str, Any], list[str]]:
-    """Map node parameter names onto (PipelineConfig, node options, ignored names).
-
-    Core names are PipelineConfig fields and 'fit.<FitConfig field>'; node options are
-    `NODE_OPTIONS`; QoS/diagnostics parameters of the live node are ignored; anything else
-    is an error (a typo would otherwise pass silently).
-    """
-    cfg = base or PipelineConfig()
-    core = {f.name: getattr(cfg, f.name) for f in fields(PipelineConfig) if f.name != 'fit'}
-    fit = {f.name: getattr(cfg.fit, f.name) for f in fields(FitConfig)}
-    opts = dict(NODE_OPTIONS)
-    ignored, unknown = [], []
-    for name, value in params.items():
-        if name in core:
-            core[name] = _coerce(name, value, core[name])
-        elif name.startswith('fit.') and name[4:] in fit:
-            fit[name[4:]] = _coerce(name, value, fit[name[4:]])
-        elif name in opts:
-            opts[name] = _coerce(name, value, NODE_OPTIONS[name])
-        elif name in NODE_ONLY:
-            ignored.append(name)
-        else:
-            unknown.append(name)
-    if unknown:
-        raise ProcessBagError(f'unknown parameter(s): {", ".join(sorted(unknown))}')
-    out = PipelineConfig(**core, fit=FitConfig(**fit))
-    if out.device not in ('auto', 'cpu', 'cuda'):
-        raise ProcessBagError(f"device must be 'auto', 'cpu' or 'cuda', got {out.device!r}")
-    if out.segmentation not in ('model', 'network'):
-        raise ProcessBagError("segmentation must be 'model' or 'network', got "
-                              f'{out.segmentation!r}')
-    if check_sensor(out.sensor):
-        raise ProcessBagError(check_sensor(out.sensor))
-    if not out.depth_min < out.depth_max:
-        raise ProcessBagError(f'depth_min ({out.depth_min}) must be smaller than depth_max '
-                              f'({out.depth_max})')
-    if not 0.0 < opts['mesh_decimation'] <= 1.0:
-        raise ProcessBagError(f"mesh_decimation must be in (0, 1], got {opts['mesh_decimation']}")
-    return out, opts, ignored
-
-
-def parse_param_overrides(items) -> dict[str, Any]:
-    """['name=value', 'name:=value'] -> {name: YAML-typed value}."""
-    import yaml
-    out = {}
-    for item in items or ():
-        sep = ':=' if ':=' in item else '='
-        name, ok, value = item.partition(sep)
-        if not ok or not name:
-            raise ProcessBagError(f"-p expects name=value, got {item!r}")
-        try:
-            out[name.strip()] = yaml.safe_load(value) if value.strip() else ''
-        except yaml.YAMLError as e:
-            raise ProcessBagError(f'-p {name.strip()}: {value!r} is not a YAML value '
-                                  f'({type(e).__name__})') from None
-    return out
+    """Node parameters (either name form; `params.from_params`) as (PipelineConfig, the
+    output options as a dict, the live-only names given, which are ignored offline).
+    ParamError names unknown parameters and invalid values, as the node would."""
+    cfg, outputs, _ = P.from_params(params, base)
+    return cfg, asdict(outputs), P.given_in(params, 'node')
 
 
 # -- reading bags -------------------------------------------------------------------------
@@ -1418,8 +1301,7 @@ def save_results(path: Path, rows: list[Outcome], bag_times, duplicate, resets, 
             shape[i] = o.params['shape'].reshape(S)
             go[i] = o.params['global_orient'].reshape(3)
             tr[i] = o.params['transl'].reshape(3)
-    cfg = {f.name: getattr(config, f.name) for f in fields(PipelineConfig) if f.name != 'fit'}
-    cfg['fit'] = {f.name: getattr(config.fit, f.name) for f in fields(FitConfig)}
+    cfg = asdict(config)
     np.savez_compressed(
         path, stamps=np.array([o.stamp_ns for o in rows], np.int64),
         bag_times=np.array(bag_times, np.int64),
@@ -1494,8 +1376,8 @@ def _run_cli(args) -> int:
     log = (lambda m: None) if args.quiet else (
         lambda m: print(f'{PROG}: {m}', file=sys.stderr, flush=True))
     try:
-        params = load_params_file(args.params_file) if args.params_file else {}
-        params.update(parse_param_overrides(args.param))
+        params = P.load_params_file(args.params_file) if args.params_file else {}
+        params.update(P.parse_overrides(args.param))
         config, options, ignored = config_from_params(params)
         if args.device:
             config = replace(config, device=args.device)
@@ -1509,7 +1391,7 @@ def _run_cli(args) -> int:
             export_meshes=args.export_meshes, workers=args.workers,
             chunk_size=args.chunk_size, overwrite=args.overwrite, output_ns=args.output_ns,
             progress=not args.quiet, log=log)
-    except (ProcessBagError, BagReadError) as e:
+    except (ProcessBagError, P.ParamError, BagReadError) as e:
         print(f'{PROG}: error: {e}', file=sys.stderr)
         return EXIT_USAGE
     except InterruptedBeforeStart as e:
