@@ -1,111 +1,180 @@
-"""Frozen configuration dataclasses: the one place that holds defaults (no ROS).
+"""Frozen configuration dataclasses: every parameter, declared once.
 
-The node declares its ROS parameters from these, `config/reconstructor.yaml` mirrors them,
-and the CLI tools map argparse flags onto them.
+Each field carries its default and, in its metadata, the description users read (ROS
+parameter descriptions, the params YAML, `--help`), its range or choices, whether a change
+needs a restart, and whether it is an expert knob (`advanced`). `smpl_depth_ros.params`
+turns these declarations into the node's ROS parameters, the params YAML, the `-p` of the
+command-line tools and the one validation all of them share. No ROS import.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields, replace
 
 
+def param(default, doc: str, *, range: tuple | None = None, choices=None,
+          restart: bool = False, advanced: bool = False):
+    """A dataclass field declared as a parameter.
+
+    Args:
+        default: the default value (its type is the parameter's type).
+        doc: one-line description for users.
+        range: (lo, hi), inclusive, for numbers.
+        choices: a tuple of allowed strings, or a callable returning one.
+        restart: a change needs a restart (a read-only ROS parameter).
+        advanced: an expert knob: the node declares it under `advanced.`.
+    """
+    return field(default=default, metadata=dict(doc=doc, range=range, choices=choices,
+                                                restart=restart, advanced=advanced))
+
+
+def _sensor_choices() -> tuple[str, ...]:
+    from smpl_depth_ros.sensor_noise import sensor_choices
+    return sensor_choices()
+
+
+_A = dict(advanced=True)
+
+
 @dataclass(frozen=True)
 class FitConfig:
-    """Model fitting (paper Eq. 3-4) and solver settings."""
+    """Model fitting (paper Eq. 3-4) and solver settings (all expert knobs: `fit.<name>`)."""
 
-    lambda_data: float = 1.0          # lambda_D
-    lambda_pose: float = 1e-3         # lambda_theta: joint-limit prior weight (per rad^2)
-    lambda_pose_l2: float = 1e-6      # weak pull of every joint towards rest (per rad^2)
-    lambda_pose_weak: float = 3e-5    # pull of the collars and wrists towards rest (per
-                                      # rad^2): joints a depth image hardly observes
-    lambda_shape: float = 1e-6        # lambda_beta (per squared standard deviation)
-    gm_sigma: float = 0.03            # Geman-McClure scale (metres)
-    tangent_weight: float = 0.5       # weight of the residual along the model surface
-                                      # (1: point to point); the depth fixes the normal
-                                      # part better than a correspondence the tangent one
-    back_facing_weight: float = 0.1   # IRLS weight of targets whose vertex faces away from
-                                      # the camera (with tangent_weight < 1)
-    gm_sigma_start: float = 0.1       # cold fits start wider and anneal to gm_sigma
-    solver: str = 'fast'              # 'fast' (default) | 'lbfgs' (the paper's reference)
-    iterations: int = 10              # cold-start iterations of the fast solver
-    tracking_iterations: int = 3      # warm-start iterations
-    lambda_temporal: float = 3e-5     # tracking: weight (per rad^2) of a joint's rotation
-                                      # away from the previous frame's
-    lbfgs_iterations: int = 20        # the paper's reference solver
-    lbfgs_lr: float = 0.6
-    max_points: int = 1000            # per-vertex targets kept per frame (random subset)
-    min_cell_points: int = 2          # vertex cells with fewer points are dropped (when
-                                      # typical cells hold twice that): isolated outliers
-    free_space_weight: float = 1.0    # pull of vertices the sensor would have seen (in free
-                                      # space) to where they could hide, per mesh vertex
-    free_space_margin: float = 0.1    # metres a measurement must lie beyond a vertex
-    free_space_iterations: int = 4    # refinement iterations with the free-space term
-    min_joint_support: float = 3.0    # joints moving fewer targets (skinning weight) are
-                                      # held in place: an unseen limb keeps its pose
-    complete_hidden: bool = True      # cold fits: those joints take their conditional
-                                      # mean given the fitted ones under the pose Gaussian
-                                      # learned from the synthetic poses (fit.pose_prior)
-    lost_residual_m: float = 0.06     # median residual above which the track is lost
-    icp_rounds: int = 2               # part-constrained nearest-vertex refinements after
-                                      # the Eq. 2 fit (0 = the paper's single fit)
-    icp_margin_m: float = 0.03        # their refits also take the pixels the network left
-                                      # out that lie this close to the fitted mesh (0 = off)
-    icp_front_cos: float = 0.2        # their nearest vertex (and that of the pixels the
-                                      # network left out) is one facing the camera: the
-                                      # cosine of its normal and the view ray below this
-                                      # (a pixel sees no back-facing surface; 1 = any)
-    icp_tangent_weight: float = 0.05  # tangent_weight of the refits to those nearest-vertex
-                                      # correspondences, which say nothing along the surface
-                                      # (near point to plane; val_s2 41.6 mm with 0.5,
-                                      # 38.8 with 0.05, one round, before icp_margin_m)
-    tracking_icp_rounds: int = 0      # the same refinement on tracked frames (after their
-                                      # warm fit, on this frame's mesh)
-    segment_init: bool = True         # cold fits: per-segment closed-form rotations
-    flip_restart: bool = True         # cold fits: retry turned 180 deg when the fit is poor
-    flip_residual_m: float = 0.06     # median residual that triggers that retry
+    lambda_data: float = param(1.0, 'fitting: data term weight (lambda_D)', **_A)
+    lambda_pose: float = param(1e-3, 'fitting: joint-limit prior weight (lambda_theta, per '
+                               'rad^2)', **_A)
+    lambda_pose_l2: float = param(1e-6, 'fitting: pull of every joint towards rest (per '
+                                  'rad^2)', **_A)
+    lambda_pose_weak: float = param(3e-5, 'fitting: pull of the collars and wrists towards '
+                                    'rest (per rad^2; joints a depth image hardly observes)',
+                                    range=(0.0, 1e6), **_A)
+    lambda_shape: float = param(1e-6, 'fitting: shape prior weight (lambda_beta, per squared '
+                                'standard deviation)', **_A)
+    gm_sigma: float = param(0.03, 'fitting: Geman-McClure scale (m)', range=(1e-6, 10.0),
+                            **_A)
+    tangent_weight: float = param(0.5, 'fitting: weight of the residual along the model '
+                                  'surface (1 = point to point; the depth fixes the normal '
+                                  'part better than a correspondence the tangent one)', **_A)
+    back_facing_weight: float = param(0.1, 'fitting: weight of targets whose vertex faces '
+                                      'away from the camera (with tangent_weight < 1)', **_A)
+    gm_sigma_start: float = param(0.1, 'fitting: cold fits start with this wider scale and '
+                                  'anneal to gm_sigma (m)', range=(1e-6, 10.0), **_A)
+    solver: str = param('fast', "fitting solver: 'fast' (Levenberg-Marquardt) or 'lbfgs' "
+                        "(the paper's reference)", choices=('fast', 'lbfgs'), **_A)
+    iterations: int = param(10, 'fitting: cold-start iterations', range=(0, 10_000), **_A)
+    tracking_iterations: int = param(3, 'fitting: warm-start iterations while tracking',
+                                     range=(0, 10_000), **_A)
+    lambda_temporal: float = param(3e-5, "fitting: tracking's temporal prior, weight (per "
+                                   "rad^2) of a joint's rotation away from the previous "
+                                   "frame's (0 = off)", range=(0.0, 1e6), **_A)
+    lbfgs_iterations: int = param(20, 'fitting: L-BFGS iterations', range=(0, 10_000), **_A)
+    lbfgs_lr: float = param(0.6, 'fitting: L-BFGS learning rate', **_A)
+    max_points: int = param(1000, 'fitting: per-vertex targets kept per frame (a random '
+                            'subset)', range=(1, 10_000_000), **_A)
+    min_cell_points: int = param(2, 'fitting: drop vertex cells with fewer points (isolated '
+                                 'wrong correspondences), when typical cells hold twice '
+                                 'that', range=(1, 1_000_000), **_A)
+    free_space_weight: float = param(1.0, 'fitting: pull of vertices the sensor would have '
+                                     'seen (in free space) to where they could hide, per '
+                                     'mesh vertex', **_A)
+    free_space_margin: float = param(0.1, 'fitting: a measurement must lie this far beyond '
+                                     'a vertex for it to be in free space (m)', **_A)
+    free_space_iterations: int = param(4, 'fitting: refinement iterations with the '
+                                       'free-space term', **_A)
+    min_joint_support: float = param(3.0, 'fitting: joints whose rotation moves fewer '
+                                     'targets (in skinning weight) are held in place (unseen '
+                                     'limbs; 0 = off)', range=(0.0, 1e6), **_A)
+    complete_hidden: bool = param(True, 'fitting: cold fits give those joints their most '
+                                  'likely pose given the fitted ones (the pose Gaussian of '
+                                  'fit.pose_prior), not rest', **_A)
+    lost_residual_m: float = param(0.06, 'fitting: median residual above which the track is '
+                                   'lost (m)', range=(0.0, 10.0), **_A)
+    icp_rounds: int = param(2, 'fitting: part-constrained nearest-vertex refinements after '
+                            "the correspondence fit (0 = the paper's single fit)",
+                            range=(0, 100), **_A)
+    icp_margin_m: float = param(0.03, 'fitting: those refits also take the pixels the '
+                                'network left out that lie this close to the fitted mesh '
+                                '(m; 0 = off)', range=(0.0, 1.0), **_A)
+    icp_front_cos: float = param(0.2, 'fitting: the refinements match each pixel (and each '
+                                 'pixel the network left out) to a vertex facing the '
+                                 'camera: cosine of its normal and the view ray below this '
+                                 '(a pixel sees no back-facing surface; 1 = any)',
+                                 range=(-1.0, 1.0), **_A)
+    # val_s2: 41.6 mm with 0.5, 38.8 with 0.05 (one round, before icp_margin_m).
+    icp_tangent_weight: float = param(0.05, 'fitting: weight of the residual along the '
+                                      'surface in the refits to those nearest-vertex '
+                                      'correspondences, which say nothing along it (0 = '
+                                      'point to plane, 1 = point to point)',
+                                      range=(0.0, 1.0), **_A)
+    tracking_icp_rounds: int = param(0, "fitting: the same refinements on tracked frames (on "
+                                     "this frame's warm fit; 0 = none, faster)",
+                                     range=(0, 100), **_A)
+    segment_init: bool = param(True, 'fitting: cold fits start from per-segment closed-form '
+                               'rotations', **_A)
+    flip_restart: bool = param(True, 'fitting: cold fits retry turned 180 degrees when the '
+                               'fit is poor', **_A)
+    flip_residual_m: float = param(0.06, 'fitting: median residual that triggers that retry '
+                                   '(m)', range=(0.0, 10.0), **_A)
 
 
 @dataclass(frozen=True)
 class PipelineConfig:
     """Everything the Reconstructor needs; one frozen value per run."""
 
-    backend: str = 'anny'             # 'anny' | 'smpl'
-    model_path: str = ''              # SMPL file (or env SMPL_MODEL_PATH); anny: optional
-    weights_path: str = ''            # '' = the weights shipped for the backend (for anny:
-                                      # per sensor class, pipeline.BROAD_NETWORK_FOR)
-    device: str = 'auto'              # 'auto' | 'cpu' | 'cuda'
-    depth_min: float = 0.5            # metres; person search range
-    depth_max: float = 6.0
-    flip_tta: bool = False            # network on the crop and its mirror image, averaged
-                                      # (more accurate; twice the network time)
-    max_persons: int = 1              # persons reconstructed per frame (most central first)
-    min_person_pixels: int = 400
-    tracking: bool = True
-    max_image_pixels: int = 4096 * 4096
-    tracking_max_gap_s: float = 0.5   # reset tracking after a longer gap between frames
-    track_timeout_s: float = 1.0      # a person unseen for longer loses its ID (a person
-                                      # seen there later gets a new one; IDs never reused)
-    track_gate_m: float = 0.5         # a person matches an earlier one within this distance
-                                      # of where it was predicted (+0.5 m per second unseen)
-    shape_sample_every: int = 5       # tracking: every n-th tracked frame also fits the
-                                      # shape; tracked frames fit the pose at the mean of
-                                      # these samples (0: keep the cold fit's shape)
-    segmentation: str = 'model'       # published labels: 'model' (each of the person's
-                                      # pixels takes the part of its nearest fitted vertex:
-                                      # the network's body pixels, and those within
-                                      # model_label_margin_m of the fitted mesh) or
-                                      # 'network' (the network's labels as they are)
-    model_label_margin_m: float = 0.045  # 'model': pixels the network called background
-                                      # join the person this close to the fitted mesh
-                                      # (not on a scene plane: pipeline.PLANE_M)
-    model_label_keep_network_m: float = 0.01  # 'model': a body pixel keeps the network's
-                                      # part when a vertex of it is this close to being its
-                                      # nearest (0: the fit's part everywhere)
-    reject_residual_m: float = 0.09   # candidates whose fit leaves a larger median residual
-                                      # are not reported as persons
-    sensor: str = 'auto'              # the depth sensor's noise, which the noise-dependent
-                                      # thresholds scale with: 'auto' (measured from the
-                                      # frames), a synth.sensors preset name (e.g.
-                                      # 'realsense_d435'), or 'none' (fixed defaults)
+    backend: str = param('anny', "body model backend: 'anny' (shipped) or 'smpl' (your own "
+                         'model file)', choices=('anny', 'smpl'), restart=True)
+    model_path: str = param('', 'SMPL model file or directory (or env SMPL_MODEL_PATH); '
+                            'anny: optional', restart=True)
+    weights_path: str = param('', "correspondence network weights ('' = the shipped ones: "
+                              'the broad network for stereo sensors, the original for the '
+                              'others; pipeline.BROAD_NETWORK_FOR)', restart=True)
+    device: str = param('auto', "torch device: 'auto' (CUDA when available), 'cpu' or "
+                        "'cuda'; a change reloads the model", choices=('auto', 'cpu', 'cuda'))
+    depth_min: float = param(0.5, 'person search range: nearest depth (m)',
+                             range=(0.0, 100.0))
+    depth_max: float = param(6.0, 'person search range: farthest depth (m)',
+                             range=(0.0, 100.0))
+    flip_tta: bool = param(False, 'run the network on each crop and its mirror image and '
+                           'average (twice the network time; better segmentation and fits)')
+    max_persons: int = param(1, 'persons reconstructed per frame (most central first)',
+                             range=(1, 100))
+    min_person_pixels: int = param(400, 'smallest person blob (pixels)',
+                                   range=(1, 10_000_000), **_A)
+    tracking: bool = param(True, 'warm-start from the previous frame while the track holds')
+    max_image_pixels: int = param(4096 * 4096, 'larger depth images are rejected (width x '
+                                  'height)', range=(1, 1 << 30), **_A)
+    tracking_max_gap_s: float = param(0.5, 'reset tracking after a longer gap between frame '
+                                      'stamps (s)', range=(0.0, 3600.0), **_A)
+    track_timeout_s: float = param(1.0, 'a person unseen for longer loses its ID (a person '
+                                   'seen there later gets a new one; IDs are never reused; s)',
+                                   range=(0.0, 3600.0))
+    track_gate_m: float = param(0.5, 'a person keeps its ID within this distance of where it '
+                                'was predicted, +0.5 m per second unseen (m)',
+                                range=(0.0, 100.0), **_A)
+    shape_sample_every: int = param(5, 'tracking: every n-th tracked frame also fits the '
+                                    'shape; tracked frames fit the pose at the mean of these '
+                                    "samples (0: keep the cold fit's shape)",
+                                    range=(0, 1_000_000), **_A)
+    segmentation: str = param('model', "published labels: 'model' (each person pixel takes "
+                              'the part of its nearest fitted vertex: the network\'s body '
+                              'pixels and those within model_label_margin_m of the mesh) or '
+                              "'network' (the network's labels as they are)",
+                              choices=('model', 'network'))
+    model_label_margin_m: float = param(0.045, "'model' segmentation: pixels the network "
+                                        'called background join the person this close to '
+                                        'the fitted mesh, not on a scene plane (m)',
+                                        range=(0.0, 1.0), **_A)
+    model_label_keep_network_m: float = param(0.01, "'model' segmentation: a body pixel "
+                                              "keeps the network's part when a vertex of it "
+                                              'is this close to being its nearest (m; 0 = '
+                                              'the fit decides everywhere)',
+                                              range=(0.0, 1.0), **_A)
+    reject_residual_m: float = param(0.09, 'person candidates whose fit leaves a larger '
+                                     'median residual are not reported (m)',
+                                     range=(0.0, 10.0), **_A)
+    sensor: str = param('auto', "the depth sensor, whose noise the thresholds scale with: "
+                        "'auto' (measured from the frames), a preset (e.g. 'realsense_d435', "
+                        "'oak_d', 'azure_kinect_nfov', 'kinect_v1') or 'none' (fixed "
+                        'thresholds)', choices=_sensor_choices)
     fit: FitConfig = field(default_factory=FitConfig)
 
     def with_overrides(self, **kw) -> 'PipelineConfig':
@@ -114,3 +183,40 @@ class PipelineConfig:
         fit_kw = {k: kw.pop(k) for k in list(kw) if k in fit_names}
         cfg = replace(self, **kw)
         return replace(cfg, fit=replace(cfg.fit, **fit_kw)) if fit_kw else cfg
+
+
+@dataclass(frozen=True)
+class OutputOptions:
+    """Which outputs are built, by the node and by process_bag (ros.outputs)."""
+
+    publish_mesh: bool = param(True, 'publish ~/mesh (a Marker per person) and ~/meshes (the '
+                               "frame's persons, DELETE for those gone)")
+    publish_segmentation: bool = param(True, 'publish ~/segmentation, ~/segmentation/labels '
+                                       'and ~/bodies/index')
+    publish_params: bool = param(True, 'publish ~/smpl_params (the most central person), '
+                                 '~/bodies/params and ~/bodies/tracked')
+    publish_skeleton: bool = param(True, 'publish ~/skeleton')
+    publish_tf: bool = param(True, 'broadcast each body as TF frames on /tf (body_<id> at '
+                             'the pelvis, <joint>_<id>)')
+    mesh_decimation: float = param(1.0, 'fraction of mesh triangles sent in ~/mesh (1 = full '
+                                   'mesh)', range=(0.001, 1.0))
+    mesh_lifetime_s: float = param(0.5, 'lifetime of the mesh and skeleton markers (0 = '
+                                   'forever; s)', range=(0.0, 3600.0))
+
+
+@dataclass(frozen=True)
+class NodeOptions:
+    """Settings of the live node only (process_bag ignores them, saying so)."""
+
+    qos_reliability: str = param('best_effort', "input QoS reliability: 'best_effort' "
+                                 "(sensor data) or 'reliable' (needed for reliable-only "
+                                 'publishers)', choices=('best_effort', 'reliable'),
+                                 restart=True)
+    qos_depth: int = param(1, 'input QoS history depth', range=(1, 1000), restart=True)
+    cpu_threads: int = param(1, 'torch CPU threads (0 = torch default); 1 is fastest beside '
+                             'a 30 Hz DDS stream on a 2-core machine', range=(0, 1024),
+                             restart=True)
+    diagnostics_period_s: float = param(1.0, 'period of the /diagnostics summary (s)',
+                                        range=(0.05, 3600.0), **_A)
+    warn_throttle_s: float = param(5.0, 'per-problem throttle of warnings (s)',
+                                   range=(0.0, 3600.0), **_A)

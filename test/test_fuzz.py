@@ -111,6 +111,7 @@ def test_pipeline_input_validation(h, w, fill, fx, cx, seed):
 _OVERRIDE = st.builds(
     lambda k, v: f'{k}={v}',
     st.sampled_from(['max_persons', 'depth_min', 'fit.iterations', 'sensor', 'tracking',
+                     'advanced.fit.iterations', 'advanced.track_gate_m',
                      'publish_tf', 'mesh_decimation', 'qos_depth', 'nope']),
     st.one_of(st.text(max_size=10), st.integers(-5, 10**6).map(str),
               st.floats(allow_nan=True).map(str),
@@ -119,20 +120,19 @@ _OVERRIDE = st.builds(
 
 @given(items=st.lists(st.one_of(st.text(max_size=40), _OVERRIDE), max_size=5))
 def test_parameter_overrides_give_a_config_or_a_usage_error(items):
-    from smpl_depth_ros.offline import (ProcessBagError, config_from_params,
-                                        parse_param_overrides)
-    out = bounded(lambda: config_from_params(parse_param_overrides(items)), 5_000_000)
-    assert not isinstance(out, Exception) or isinstance(out, ProcessBagError), repr(out)
+    from smpl_depth_ros.params import ParamError, from_params, parse_overrides
+    out = bounded(lambda: from_params(parse_overrides(items)), 5_000_000)
+    assert not isinstance(out, Exception) or isinstance(out, ParamError), repr(out)
 
 
 @given(text=st.one_of(st.text(max_size=300), st.builds(
     lambda v: '/**:\n  ros__parameters:\n    ' + v, st.text(max_size=120))))
 def test_params_files_give_parameters_or_a_usage_error(tmp_path, text):
-    from smpl_depth_ros.offline import ProcessBagError, config_from_params, load_params_file
+    from smpl_depth_ros.params import ParamError, from_params, load_params_file
     p = tmp_path / 'p.yaml'
     p.write_text(text)
-    out = bounded(lambda: config_from_params(load_params_file(p)), 5_000_000)
-    assert not isinstance(out, Exception) or isinstance(out, ProcessBagError), repr(out)
+    out = bounded(lambda: from_params(load_params_file(p)), 5_000_000)
+    assert not isinstance(out, Exception) or isinstance(out, ParamError), repr(out)
 
 
 @pytest.fixture(scope='module')

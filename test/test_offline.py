@@ -28,10 +28,10 @@ import pytest
 
 from smpl_depth_ros import offline
 from smpl_depth_ros.config import PipelineConfig
-from smpl_depth_ros.offline import (NODE_OPTIONS, OUTPUTS, BagReadError, ProcessBagError,
-                                    Topic, config_from_params, load_params_file, main,
-                                    parse_param_overrides, process_bag, select_topics)
+from smpl_depth_ros.offline import (OUTPUTS, BagReadError, ProcessBagError, Topic,
+                                    config_from_params, main, process_bag, select_topics)
 from smpl_depth_ros.offline.run import _Progress
+from smpl_depth_ros.params import load_params_file
 
 REPO = Path(__file__).resolve().parents[1]
 PARAMS_FILE = REPO / 'config' / 'reconstructor.yaml'
@@ -452,40 +452,6 @@ def test_topic_selection():
         select_topics(one[:1], None, None)
 
 
-def test_params_file_and_overrides(tmp_path):
-    params = load_params_file(PARAMS_FILE)
-    cfg, opts, ignored = config_from_params(params)
-    assert params['backend'] == 'anny' and params['fit.iterations'] > 0  # flattened
-    for name, value in params.items():   # every value of the file reaches the config
-        if name.startswith('fit.'):
-            assert getattr(cfg.fit, name[4:]) == value, name
-        elif name in NODE_OPTIONS:
-            assert opts[name] == value, name
-        elif hasattr(cfg, name):
-            assert getattr(cfg, name) == value, name
-    assert set(ignored) == {'qos_reliability', 'qos_depth', 'diagnostics_period_s',
-                            'warn_throttle_s', 'cpu_threads'}
-    f = tmp_path / 'p.yaml'
-    f.write_text('/**:\n  ros__parameters:\n    depth_max: 5\n    fit:\n      iterations: 7\n'
-                 '/robot/reconstructor:\n  ros__parameters:\n    depth_max: 4.5\n'
-                 'other_node:\n  ros__parameters:\n    depth_max: 1.0\n')
-    cfg, _, _ = config_from_params(load_params_file(f))
-    assert cfg.depth_max == 4.5 and cfg.fit.iterations == 7
-    over = parse_param_overrides(['tracking=false', 'fit.solver:=lbfgs', 'mesh_decimation=0.5'])
-    cfg, opts, _ = config_from_params(over)
-    assert cfg.tracking is False and cfg.fit.solver == 'lbfgs' and opts['mesh_decimation'] == 0.5
-    cfg, _, _ = config_from_params(parse_param_overrides(['fit.lambda_shape=1e-5']))
-    assert cfg.fit.lambda_shape == 1e-5  # a string to YAML 1.1, a number to ROS
-    with pytest.raises(ProcessBagError, match='number'):
-        config_from_params({'fit.lambda_shape': 'abc'})
-    with pytest.raises(ProcessBagError, match='unknown parameter'):
-        config_from_params({'fit.iteratons': 3})
-    with pytest.raises(ProcessBagError, match='integer'):
-        config_from_params({'max_persons': 1.5})
-    with pytest.raises(ProcessBagError, match='depth_min'):
-        config_from_params({'depth_min': 7.0})
-
-
 def test_progress_lines_without_a_terminal():
     lines = []
     p = _Progress(10, True, lines.append, period=0.0)
@@ -556,18 +522,6 @@ def test_two_people_get_tf_trees_and_stable_ids_in_the_output_bag(tmp_path):
             p = frames[b].transform.translation
             d = np.linalg.norm(gt['joints'][i][:, 0] - [p.x, p.y, p.z], axis=1)
             assert d.min() < 0.15, d
-
-
-def test_bad_yaml_in_overrides_and_params_files_are_usage_errors(tmp_path):
-    """Found by test_fuzz: a control character in `-p` and a non-mapping ros__parameters
-    raised yaml's ReaderError / AttributeError instead of the usage error."""
-    from smpl_depth_ros.offline import ProcessBagError, load_params_file, parse_param_overrides
-    with pytest.raises(ProcessBagError, match='not a YAML value'):
-        parse_param_overrides(['depth_min=\x1b'])
-    p = tmp_path / 'p.yaml'
-    p.write_text('/**:\n  ros__parameters: 1\n')
-    with pytest.raises(ProcessBagError, match='must be a mapping'):
-        load_params_file(p)
 
 
 def test_output_bags_carry_chunk_crcs_and_damaged_chunks_are_reported(cli_run, tmp_path):

@@ -37,7 +37,7 @@ from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image, JointState  # noqa: E402
 from visualization_msgs.msg import Marker, MarkerArray  # noqa: E402
 
-from smpl_depth_ros.config import PipelineConfig  # noqa: E402
+from smpl_depth_ros.config import FitConfig, PipelineConfig  # noqa: E402
 from smpl_depth_ros.ros import adapters as A  # noqa: E402
 from smpl_depth_ros.ros.reconstructor_node import ReconstructorNode  # noqa: E402
 
@@ -565,7 +565,8 @@ def _bad_msg(kind: str, scene: Scene, tester: Probe, stamp: int) -> tuple[Image,
 
 
 def test_bad_inputs_then_good_frame(harness, core, scene):
-    node, tester = harness(max_image_pixels=1_000_000, warn_throttle_s=30.0)
+    node, tester = harness(**{'advanced.max_image_pixels': 1_000_000,
+                              'advanced.warn_throttle_s': 30.0})
     tester.infos.append(scene.info_msg('uncalibrated', K=np.zeros((3, 3))))
     assert wait_for(lambda: 'uncalibrated' in node._camera_infos, 10.0)
     seen = []
@@ -628,11 +629,14 @@ def test_distortion_is_reported_not_undone(harness, core, scene):
 
 
 def test_runtime_parameter_validation(harness, core, scene):
-    node, tester = harness()
+    # A short (command-line tool) name in the overrides is reported, not silently dropped.
+    node, tester = harness(**{'fit.iterations': 3})
+    assert node.unknown_parameters == ['fit.iterations']
+    assert node.get_parameter('advanced.fit.iterations').value == FitConfig().iterations
     bad = [Parameter('depth_min', value=7.0),                       # >= depth_max (6.0)
            Parameter('device', value='tpu'),
-           Parameter('fit.iterations', value=-1),
-           Parameter('fit.solver', value='newton'),
+           Parameter('advanced.fit.iterations', value=-1),
+           Parameter('advanced.fit.solver', value='newton'),
            Parameter('backend', value='smpl'),                      # read-only
            Parameter('qos_reliability', value='reliable'),          # read-only
            Parameter('mesh_decimation', value=0.0)]
@@ -645,7 +649,7 @@ def test_runtime_parameter_validation(harness, core, scene):
     # Valid changes are accepted and reach the core / the outputs.
     faces = core.body.faces_numpy()
     r = node.set_parameters([Parameter('depth_max', value=5.0),
-                             Parameter('fit.iterations', value=8),
+                             Parameter('advanced.fit.iterations', value=8),
                              Parameter('mesh_decimation', value=0.5),
                              Parameter('publish_skeleton', value=False)])
     assert all(x.successful for x in r), [x.reason for x in r]
@@ -750,7 +754,7 @@ def test_subprocess_bag_frames_params_file_and_sigint(rclpy_context, real_core, 
         client = AsyncParameterClient(tester.node, '/sp/reconstructor')
         assert client.wait_for_services(20.0)
         names = ['depth_max', 'depth_min', 'mesh_lifetime_s', 'qos_reliability', 'backend',
-                 'fit.iterations']
+                 'advanced.fit.iterations']
         values = [parameter_value_to_python(x)
                   for x in _future(client.get_parameters(names)).values]
         got = dict(zip(names, values))
@@ -764,7 +768,8 @@ def test_subprocess_bag_frames_params_file_and_sigint(rclpy_context, real_core, 
         assert not res[0].successful and 'depth_max' in res[0].reason
         res = _future(client.set_parameters([Parameter('weights_path', value='x')])).results
         assert not res[0].successful and 'read-only' in res[0].reason
-        res = _future(client.set_parameters([Parameter('fit.iterations', value=10)])).results
+        res = _future(client.set_parameters(
+            [Parameter('advanced.fit.iterations', value=10)])).results
         assert res[0].successful
 
         # Play the bag: camera_info then depth, frame by frame, waiting for the outputs.
@@ -866,18 +871,20 @@ def _flatten(d: dict, prefix: str = '') -> dict:
 
 def test_print_params(capsys):
     import yaml
-    from smpl_depth_ros.ros.reconstructor_node import main, parameter_defaults
+    from smpl_depth_ros.params import SCHEMA
+    from smpl_depth_ros.ros.reconstructor_node import main
     assert main(['--print-params']) == 0
     printed = _flatten(yaml.safe_load(capsys.readouterr().out)['/**']['ros__parameters'])
-    assert printed == parameter_defaults()
+    assert printed == {p.ros_name: p.default for p in SCHEMA.values()}
+    assert 'advanced.fit.iterations' in printed and 'max_persons' in printed
 
 
 def test_params_file_mirrors_defaults():
     import yaml
-    from smpl_depth_ros.ros.reconstructor_node import parameter_defaults, validate
+    from smpl_depth_ros.params import SCHEMA, check, lookup
     data = yaml.safe_load(PARAMS_FILE.read_text())
     values = _flatten(data['/**']['ros__parameters'])
-    defaults = parameter_defaults()
+    defaults = {p.ros_name: p.default for p in SCHEMA.values()}
     missing = {k: v for k, v in defaults.items() if k not in values}
     extra = sorted(set(values) - set(defaults))
     assert not missing and not extra, (
@@ -889,7 +896,7 @@ def test_params_file_mirrors_defaults():
         assert values[k] == pytest.approx(v) if isinstance(v, float) else values[k] == v, \
             f'{k}: {values[k]!r} in the params file, default {v!r} (regenerate: ' \
             'reconstructor --print-params > config/reconstructor.yaml)'
-    assert validate(values) is None
+    assert check({lookup(k).name: v for k, v in values.items()}) is None
 
 
 def test_rviz_config_shows_the_outputs():

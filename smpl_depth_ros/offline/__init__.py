@@ -48,8 +48,7 @@ from smpl_depth_ros.offline.bagread import BagInput, Topic, select_topics
 from smpl_depth_ros.offline.cli import (EXIT_DAMAGED, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE,
                                         build_parser, main)
 from smpl_depth_ros.offline.errors import BagReadError, InterruptedBeforeStart, ProcessBagError
-from smpl_depth_ros.offline.params import (NODE_ONLY, NODE_OPTIONS, config_from_params,
-                                           load_params_file, parse_param_overrides)
+from smpl_depth_ros.offline.params import NODE_OPTIONS, config_from_params
 from smpl_depth_ros.offline.run import DEFAULT_NS, MESH_FORMATS, process_bag, save_results
 from smpl_depth_ros.offline.workers import OUTPUTS
 
@@ -57,8 +56,7 @@ __all__ = [
     'BagInput', 'Topic', 'select_topics',
     'EXIT_OK', 'EXIT_USAGE', 'EXIT_DAMAGED', 'EXIT_INTERRUPTED', 'build_parser', 'main',
     'BagReadError', 'InterruptedBeforeStart', 'ProcessBagError',
-    'NODE_OPTIONS', 'NODE_ONLY', 'config_from_params', 'load_params_file',
-    'parse_param_overrides',
+    'NODE_OPTIONS', 'config_from_params',
     'DEFAULT_NS', 'MESH_FORMATS', 'process_bag', 'save_results',
     'OUTPUTS',
 ]

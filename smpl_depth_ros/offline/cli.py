@@ -13,9 +13,9 @@ import sys
 import threading
 from dataclasses import replace
 
+from smpl_depth_ros import params as P
 from smpl_depth_ros.offline.errors import BagReadError, InterruptedBeforeStart, ProcessBagError
-from smpl_depth_ros.offline.params import (config_from_params, load_params_file,
-                                           parse_param_overrides)
+from smpl_depth_ros.offline.params import config_from_params
 from smpl_depth_ros.offline.run import DEFAULT_NS, MESH_FORMATS, PROG, process_bag
 
 EXIT_OK, EXIT_USAGE, EXIT_DAMAGED, EXIT_INTERRUPTED = 0, 1, 3, 130
@@ -75,8 +75,8 @@ def _run_cli(args) -> int:
     log = (lambda m: None) if args.quiet else (
         lambda m: print(f'{PROG}: {m}', file=sys.stderr, flush=True))
     try:
-        params = load_params_file(args.params_file) if args.params_file else {}
-        params.update(parse_param_overrides(args.param))
+        params = P.load_params_file(args.params_file) if args.params_file else {}
+        params.update(P.parse_overrides(args.param))
         config, options, ignored = config_from_params(params)
         if args.device:
             config = replace(config, device=args.device)
@@ -90,7 +90,7 @@ def _run_cli(args) -> int:
             export_meshes=args.export_meshes, workers=args.workers,
             chunk_size=args.chunk_size, overwrite=args.overwrite, output_ns=args.output_ns,
             progress=not args.quiet, log=log)
-    except (ProcessBagError, BagReadError) as e:
+    except (ProcessBagError, P.ParamError, BagReadError) as e:
         print(f'{PROG}: error: {e}', file=sys.stderr)
         return EXIT_USAGE
     except InterruptedBeforeStart as e:

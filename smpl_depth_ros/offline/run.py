@@ -11,13 +11,13 @@ import shutil
 import sys
 import time
 from collections import Counter, deque
-from dataclasses import fields
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
-from smpl_depth_ros.config import FitConfig, PipelineConfig
+from smpl_depth_ros.config import PipelineConfig
 from smpl_depth_ros.offline.bagread import BagInput, Topic, _storage_files, select_topics
 from smpl_depth_ros.offline.errors import BagReadError, InterruptedBeforeStart, ProcessBagError
 from smpl_depth_ros.offline.params import NODE_OPTIONS
@@ -518,8 +518,7 @@ def save_results(path: Path, rows: list[Outcome], bag_times, duplicate, resets, 
             shape[i] = o.params['shape'].reshape(S)
             go[i] = o.params['global_orient'].reshape(3)
             tr[i] = o.params['transl'].reshape(3)
-    cfg = {f.name: getattr(config, f.name) for f in fields(PipelineConfig) if f.name != 'fit'}
-    cfg['fit'] = {f.name: getattr(config.fit, f.name) for f in fields(FitConfig)}
+    cfg = asdict(config)
     np.savez_compressed(
         path, stamps=np.array([o.stamp_ns for o in rows], np.int64),
         bag_times=np.array(bag_times, np.int64),

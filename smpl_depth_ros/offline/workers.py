@@ -37,7 +37,7 @@ import numpy as np
 
 from smpl_depth_ros.config import PipelineConfig
 from smpl_depth_ros.ros.outputs import TOPICS, FrameOutputs
-from smpl_depth_ros.ros.outputs import OutputOptions as MessageOptions
+from smpl_depth_ros.config import OutputOptions as MessageOptions
 from smpl_depth_ros.types import InputError
 
 # Output key -> (topic under the namespace, or absolute; message type), as the node

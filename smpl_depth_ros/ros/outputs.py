@@ -21,10 +21,9 @@ depth image's header (stamp, frame_id); TF frames hang off that frame_id.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
-
 import numpy as np
 
+from smpl_depth_ros.config import OutputOptions
 from smpl_depth_ros.ros import adapters as A
 
 TF_T = 'tf2_msgs/msg/TFMessage'
@@ -41,37 +40,6 @@ TOPICS = {
     'tracked': ('bodies/tracked', 'sensor_msgs/msg/JointState'),
     'tf': ('/tf', TF_T),
 }
-# The output parameters (node and process_bag): name -> (default, description).
-OUTPUT_PARAMS = {
-    'publish_mesh': (True, 'publish ~/mesh (a Marker per person) and ~/meshes (the '
-                           "frame's persons, DELETE for those gone)"),
-    'publish_segmentation': (True, 'publish ~/segmentation, ~/segmentation/labels and '
-                                   '~/bodies/index'),
-    'publish_params': (True, 'publish ~/smpl_params (the most central person), '
-                             '~/bodies/params and ~/bodies/tracked'),
-    'publish_skeleton': (True, 'publish ~/skeleton'),
-    'publish_tf': (True, 'broadcast each body as TF frames on /tf (body_<id> at the pelvis, '
-                         '<joint>_<id>)'),
-    'mesh_decimation': (1.0, 'fraction of mesh triangles sent in ~/mesh (1 = full mesh)'),
-    'mesh_lifetime_s': (0.5, 'lifetime of the mesh and skeleton markers (0 = forever)'),
-}
-
-
-@dataclass(frozen=True)
-class OutputOptions:
-    """Which outputs are built (the OUTPUT_PARAMS, same names)."""
-
-    publish_mesh: bool = True
-    publish_segmentation: bool = True
-    publish_params: bool = True
-    publish_skeleton: bool = True
-    publish_tf: bool = True
-    mesh_decimation: float = 1.0
-    mesh_lifetime_s: float = 0.5
-
-    @classmethod
-    def from_values(cls, values: dict) -> 'OutputOptions':
-        return cls(**{f.name: values[f.name] for f in fields(cls) if f.name in values})
 
 
 class FrameOutputs:

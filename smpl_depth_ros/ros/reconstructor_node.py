@@ -24,7 +24,7 @@ import sys
 import threading
 import time
 from collections import Counter, deque
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
@@ -38,254 +38,41 @@ from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescr
 from diagnostic_msgs.msg import DiagnosticArray
 from sensor_msgs.msg import CameraInfo, Image
 
-from smpl_depth_ros.config import FitConfig, PipelineConfig
-from smpl_depth_ros.sensor_noise import check_sensor, sensor_choices
+from smpl_depth_ros import params as P
+from smpl_depth_ros.config import PipelineConfig
 from smpl_depth_ros.ros import adapters as A
-from smpl_depth_ros.ros.outputs import OUTPUT_PARAMS, TOPICS, FrameOutputs, OutputOptions
+from smpl_depth_ros.ros.outputs import TOPICS, FrameOutputs
 from smpl_depth_ros.ros.runner import ros_args, run_nodes
 from smpl_depth_ros.types import InputError
 
 NODE_NAME = 'reconstructor'
 
-# Descriptions of the core parameters (PipelineConfig fields, FitConfig as 'fit.<name>').
-_CORE_DOC = {
-    'backend': "body model backend: 'anny' (shipped) or 'smpl' (your own model file)",
-    'model_path': 'SMPL model file or directory (or env SMPL_MODEL_PATH); anny: optional',
-    'weights_path': "correspondence network weights ('' = the shipped ones: the broad "
-                    'network for stereo sensors, the original for the others)',
-    'device': "torch device: 'auto' (CUDA when available), 'cpu' or 'cuda'; a change "
-              'reloads the model',
-    'depth_min': 'person search range: nearest depth (metres)',
-    'depth_max': 'person search range: farthest depth (metres)',
-    'max_persons': 'persons reconstructed per frame (most central first)',
-    'min_person_pixels': 'smallest person blob (pixels)',
-    'flip_tta': 'run the network on each crop and its mirror image and average (twice the '
-                'network time; better segmentation and fits)',
-    'tracking': 'warm-start from the previous frame while the track holds',
-    'max_image_pixels': 'larger depth images are rejected (width x height)',
-    'tracking_max_gap_s': 'reset tracking after a longer gap between frame stamps (s)',
-    'track_timeout_s': 'a person unseen for longer loses its ID; IDs are never reused (s)',
-    'track_gate_m': 'a person keeps its ID within this distance of where it was predicted, '
-                    '+0.5 m per second unseen (m)',
-    'reject_residual_m': 'person candidates whose fit leaves a larger median residual are '
-                         'not reported (m)',
-    'sensor': "the depth sensor, whose noise the thresholds scale with: 'auto' (measured "
-              "from the frames), a preset (e.g. 'realsense_d435', 'oak_d', "
-              "'azure_kinect_nfov', 'kinect_v1') or 'none' (fixed thresholds)",
-    'shape_sample_every': 'tracking: every n-th tracked frame also fits the shape; tracked '
-                          "frames fit the pose at the mean of these samples (0: keep the "
-                          "cold fit's shape)",
-    'segmentation': "published labels: 'model' (each person pixel takes the part of its "
-                    "nearest fitted vertex) or 'network' (the network's labels as they are)",
-    'model_label_margin_m': "'model' segmentation: pixels the network called background "
-                            'join the person this close to the fitted mesh (m)',
-    'model_label_keep_network_m': "'model' segmentation: a body pixel keeps the network's "
-                                  'part when a vertex of it is this close to being its '
-                                  'nearest (m; 0 = the fit decides everywhere)',
-    'fit.lambda_data': 'fitting: data term weight',
-    'fit.lambda_pose': 'fitting: joint-limit prior weight',
-    'fit.lambda_pose_l2': 'fitting: pull of every joint towards rest (per rad^2)',
-    'fit.lambda_pose_weak': 'fitting: pull of the collars and wrists towards rest (per '
-                            'rad^2; joints a depth image hardly observes)',
-    'fit.lambda_shape': 'fitting: shape prior weight',
-    'fit.gm_sigma': 'fitting: Geman-McClure scale (metres)',
-    'fit.gm_sigma_start': 'fitting: cold fits start with this wider scale and anneal to '
-                          'gm_sigma (metres)',
-    'fit.solver': "fitting solver: 'fast' or 'lbfgs'",
-    'fit.iterations': 'fitting: cold-start iterations',
-    'fit.tracking_iterations': 'fitting: warm-start iterations while tracking',
-    'fit.lambda_temporal': "fitting: tracking's temporal prior, weight (per rad^2) of a "
-                           "joint's rotation away from the previous frame's (0 = off)",
-    'fit.lbfgs_iterations': 'fitting: L-BFGS iterations',
-    'fit.lbfgs_lr': 'fitting: L-BFGS learning rate',
-    'fit.max_points': 'fitting: per-vertex targets kept per frame',
-    'fit.min_cell_points': 'fitting: drop vertex cells with fewer points (isolated wrong '
-                           'correspondences), when typical cells hold twice that',
-    'fit.min_joint_support': 'fitting: joints whose rotation moves fewer targets (in '
-                             'skinning weight) are held in place (unseen limbs; 0 = off)',
-    'fit.complete_hidden': 'fitting: cold fits give those joints their most likely pose '
-                           'given the fitted ones (a pose Gaussian learned from the '
-                           'synthetic poses), not rest',
-    'fit.lost_residual_m': 'fitting: median residual above which the track is lost (m)',
-    'fit.icp_rounds': 'fitting: part-constrained nearest-vertex refinements after the '
-                      'correspondence fit (0 = none)',
-    'fit.icp_margin_m': 'fitting: those refits also take the pixels the network left out '
-                        'that lie this close to the fitted mesh (m; 0 = off)',
-    'fit.icp_front_cos': 'fitting: the refinements match each pixel (and each pixel the '
-                         'network left out) to a vertex facing the camera: cosine of its '
-                         'normal and the view ray below this (1 = any)',
-    'fit.icp_tangent_weight': 'fitting: weight of the residual along the surface in the '
-                              'refits to those nearest-vertex correspondences (0 = point '
-                              'to plane, 1 = point to point)',
-    'fit.tracking_icp_rounds': 'fitting: the same refinements on tracked frames (on their '
-                               'warm fit; 0 = none, faster)',
-    'fit.segment_init': 'fitting: cold fits start from per-segment closed-form rotations',
-    'fit.flip_restart': 'fitting: cold fits retry turned 180 degrees when the fit is poor',
-    'fit.flip_residual_m': 'fitting: median residual that triggers that retry (m)',
-}
-# Node-only parameters: default, description.
-_NODE_PARAMS = {
-    'qos_reliability': ('best_effort', "input QoS reliability: 'best_effort' (sensor data) "
-                        "or 'reliable' (needed for reliable-only publishers)"),
-    'qos_depth': (1, 'input QoS history depth'),
-    'cpu_threads': (1, 'torch CPU threads (0 = torch default); 1 is fastest beside a 30 Hz '
-                    'DDS stream on a 2-core machine'),
-    **OUTPUT_PARAMS,
-    'diagnostics_period_s': (1.0, 'period of the /diagnostics summary (s)'),
-    'warn_throttle_s': (5.0, 'per-problem throttle of warnings (s)'),
-}
-READ_ONLY = {'backend', 'model_path', 'weights_path', 'qos_reliability', 'qos_depth',
-             'cpu_threads'}
-DEVICES = ('auto', 'cpu', 'cuda')
 STAMP_JUMP_BACK_S = 0.001    # a depth stamp this far before the previous one is a jump
 STAMP_JUMP_FORWARD_S = 60.0  # ... and this far after it
 INFO_STALE_S = 2.0           # diagnostics warn when camera_info is older than this
-BACKENDS = ('anny', 'smpl')
-SOLVERS = ('fast', 'lbfgs')
-SEGMENTATIONS = ('model', 'network')
 RELIABILITY = {'best_effort': ReliabilityPolicy.BEST_EFFORT,
                'reliable': ReliabilityPolicy.RELIABLE}
-_FLOAT_RANGES = {
-    'depth_min': (0.0, 100.0), 'depth_max': (0.0, 100.0), 'tracking_max_gap_s': (0.0, 3600.0),
-    'track_timeout_s': (0.0, 3600.0), 'track_gate_m': (0.0, 100.0),
-    'mesh_decimation': (0.001, 1.0), 'mesh_lifetime_s': (0.0, 3600.0),
-    'diagnostics_period_s': (0.05, 3600.0), 'warn_throttle_s': (0.0, 3600.0),
-    'fit.gm_sigma': (1e-6, 10.0), 'fit.gm_sigma_start': (1e-6, 10.0),
-    'fit.lost_residual_m': (0.0, 10.0), 'fit.min_joint_support': (0.0, 1e6),
-    'fit.flip_residual_m': (0.0, 10.0), 'reject_residual_m': (0.0, 10.0),
-    'model_label_margin_m': (0.0, 1.0), 'model_label_keep_network_m': (0.0, 1.0),
-    'fit.lambda_temporal': (0.0, 1e6), 'fit.icp_tangent_weight': (0.0, 1.0),
-    'fit.icp_margin_m': (0.0, 1.0), 'fit.lambda_pose_weak': (0.0, 1e6),
-    'fit.icp_front_cos': (-1.0, 1.0),
-}
-_INT_RANGES = {
-    'qos_depth': (1, 1000), 'cpu_threads': (0, 1024), 'max_persons': (1, 100),
-    'min_person_pixels': (1, 10_000_000),
-    'max_image_pixels': (1, 1 << 30), 'fit.iterations': (0, 10_000),
-    'fit.tracking_iterations': (0, 10_000), 'fit.lbfgs_iterations': (0, 10_000),
-    'fit.max_points': (1, 10_000_000), 'fit.icp_rounds': (0, 100),
-    'fit.min_cell_points': (1, 1_000_000), 'fit.tracking_icp_rounds': (0, 100),
-    'shape_sample_every': (0, 1_000_000),
-}
 
 
-def parameter_defaults() -> dict[str, Any]:
-    """Every node parameter with its default (from PipelineConfig / FitConfig)."""
-    cfg = PipelineConfig()
-    out = {f.name: getattr(cfg, f.name) for f in fields(PipelineConfig) if f.name != 'fit'}
-    out.update({f'fit.{f.name}': getattr(cfg.fit, f.name) for f in fields(FitConfig)})
-    out.update({k: v[0] for k, v in _NODE_PARAMS.items()})
-    return out
-
-
-def _descriptor(name: str, default) -> ParameterDescriptor:
-    doc = _CORE_DOC.get(name) or _NODE_PARAMS.get(name, (None, ''))[1] or (
-        f'FitConfig.{name[4:]}' if name.startswith('fit.') else f'PipelineConfig.{name}')
-    d = ParameterDescriptor(name=name, description=doc, read_only=name in READ_ONLY)
-    if isinstance(default, bool):
+def _descriptor(p: P.Param) -> ParameterDescriptor:
+    """The ROS descriptor of a schema parameter (ranges enforced by rclpy too)."""
+    d = ParameterDescriptor(name=p.ros_name, description=p.doc, read_only=p.restart)
+    if p.kind is bool:
         d.type = ParameterType.PARAMETER_BOOL
-    elif isinstance(default, int):
+    elif p.kind is int:
         d.type = ParameterType.PARAMETER_INTEGER
-        if name in _INT_RANGES:
-            lo, hi = _INT_RANGES[name]
-            d.integer_range = [IntegerRange(from_value=lo, to_value=hi, step=1)]
-    elif isinstance(default, float):
+        if p.range:
+            d.integer_range = [IntegerRange(from_value=p.range[0], to_value=p.range[1],
+                                            step=1)]
+    elif p.kind is float:
         d.type = ParameterType.PARAMETER_DOUBLE
-        if name in _FLOAT_RANGES:
-            lo, hi = _FLOAT_RANGES[name]
-            d.floating_point_range = [FloatingPointRange(from_value=lo, to_value=hi, step=0.0)]
+        if p.range:
+            d.floating_point_range = [FloatingPointRange(
+                from_value=float(p.range[0]), to_value=float(p.range[1]), step=0.0)]
     else:
         d.type = ParameterType.PARAMETER_STRING
-    choices = {'backend': BACKENDS, 'device': DEVICES, 'fit.solver': SOLVERS,
-               'segmentation': SEGMENTATIONS, 'sensor': sensor_choices(),
-               'qos_reliability': tuple(RELIABILITY)}.get(name)
-    if choices:
-        d.additional_constraints = 'one of: ' + ', '.join(choices)
-    if d.read_only:
-        d.additional_constraints = (d.additional_constraints + '; ' if
-                                    d.additional_constraints else '') + 'needs a restart'
+    d.additional_constraints = P.constraints(p)
     return d
-
-
-def _yaml_value(v) -> str:
-    if isinstance(v, bool):
-        return 'true' if v else 'false'
-    if isinstance(v, float):
-        r = repr(v)
-        if 'e' in r and '.' not in r.split('e')[0]:  # 1e-07 -> 1.0e-07 (a YAML 1.1 float)
-            r = r.replace('e', '.0e', 1)
-        return r
-    if isinstance(v, str):
-        return "''" if v == '' else v
-    return str(v)
-
-
-def params_yaml() -> str:
-    """The defaults as a `--params-file` (what config/reconstructor.yaml holds):
-    `reconstructor --print-params > config/reconstructor.yaml`."""
-    defaults = parameter_defaults()
-    out = ['# Parameters of the `reconstructor` node (smpl_depth_ros.ros.reconstructor_node),',
-           '# generated by `reconstructor --print-params` from PipelineConfig / FitConfig and',
-           '# the node defaults (test_reconstructor_node checks that they agree). Keyed `/**:`',
-           '# so it survives node renames and namespaces:',
-           '#   reconstructor --ros-args --params-file config/reconstructor.yaml -p device:=cpu',
-           '/**:', '  ros__parameters:']
-
-    def line(indent: str, key: str, name: str):
-        d = _descriptor(name, defaults[name])
-        note = d.description + (' [read-only]' if d.read_only else '')
-        if d.additional_constraints and not d.read_only:
-            note += f' [{d.additional_constraints}]'
-        out.append(f'{indent}{key}: {_yaml_value(defaults[name])}  # {note}')
-
-    out.append('    # -- core (PipelineConfig) ' + '-' * 50)
-    for name in defaults:
-        if '.' not in name and name not in _NODE_PARAMS:
-            line('    ', name, name)
-    out.append('    fit:  # FitConfig')
-    for name in defaults:
-        if name.startswith('fit.'):
-            line('      ', name[4:], name)
-    out.append('    # -- node ' + '-' * 66)
-    for name in _NODE_PARAMS:
-        line('    ', name, name)
-    return '\n'.join(out) + '\n'
-
-
-def validate(values: dict[str, Any]) -> str | None:
-    """Reason why a full set of parameter values is invalid, or None."""
-    if values['backend'] not in BACKENDS:
-        return f"backend must be one of {BACKENDS}, got '{values['backend']}'"
-    if values['device'] not in DEVICES:
-        return f"device must be one of {DEVICES}, got '{values['device']}'"
-    if values['device'] == 'cuda':
-        import torch
-        if not torch.cuda.is_available():
-            return "device 'cuda' requested but CUDA is not available"
-    if values['fit.solver'] not in SOLVERS:
-        return f"fit.solver must be one of {SOLVERS}, got '{values['fit.solver']}'"
-    if values['segmentation'] not in SEGMENTATIONS:
-        return (f'segmentation must be one of {SEGMENTATIONS}, '
-                f"got '{values['segmentation']}'")
-    if values.get('sensor') is not None and check_sensor(values['sensor']):
-        return check_sensor(values['sensor'])
-    if values['qos_reliability'] not in RELIABILITY:
-        return (f"qos_reliability must be one of {tuple(RELIABILITY)}, "
-                f"got '{values['qos_reliability']}'")
-    if not values['depth_min'] < values['depth_max']:
-        return (f"depth_min ({values['depth_min']}) must be smaller than depth_max "
-                f"({values['depth_max']})")
-    for name, (lo, hi) in {**_FLOAT_RANGES, **_INT_RANGES}.items():
-        v = values.get(name)
-        if v is not None and not lo <= v <= hi:
-            return f'{name} must be in [{lo}, {hi}], got {v}'
-    return None
-
-
-def config_from_values(values: dict[str, Any]) -> PipelineConfig:
-    core = {f.name: values[f.name] for f in fields(PipelineConfig) if f.name != 'fit'}
-    fit = FitConfig(**{f.name: values[f'fit.{f.name}'] for f in fields(FitConfig)})
-    return PipelineConfig(**core, fit=fit)
 
 
 # -- the frame hand-off ----------------------------------------------------------------
@@ -356,12 +143,23 @@ class ReconstructorNode(Node):
         self._t_start = time.monotonic()
         super().__init__(NODE_NAME, **kwargs)
         log = self.get_logger()
-        defaults = parameter_defaults()
-        self.declare_parameters('', [(n, v, _descriptor(n, v)) for n, v in defaults.items()])
-        self._values = {n: self.get_parameter(n).value for n in defaults}
-        reason = validate(self._values)
+        # Every parameter of the schema (params.SCHEMA), expert knobs under 'advanced.';
+        # self._values holds them by their schema names.
+        self.declare_parameters('', [(p.ros_name, p.default, _descriptor(p))
+                                     for p in P.SCHEMA.values()])
+        self._values = {n: self.get_parameter(p.ros_name).value for n, p in P.SCHEMA.items()}
+        reason = P.check(self._values)
         if reason:
             raise ValueError(f'invalid parameters: {reason}')
+        # Overrides (params file, -p) naming no parameter: a typo, or a short name.
+        self.unknown_parameters = sorted(
+            set(getattr(self, '_parameter_overrides', {}))
+            - {p.ros_name for p in P.SCHEMA.values()} - {'use_sim_time'})
+        if self.unknown_parameters:
+            log.warning(f"ignoring unknown parameter(s) {', '.join(self.unknown_parameters)} "
+                        "(expert knobs are under 'advanced.', e.g. advanced.fit.iterations; "
+                        'see --print-params)')
+        self._config, outputs, _ = P.split(self._values)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._after_set_parameters)
 
@@ -401,7 +199,6 @@ class ReconstructorNode(Node):
                 100 if key == 'tf' else 5)  # tf2_ros' TransformBroadcaster keeps 100
         self._pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
 
-        self._config = config_from_values(self._values)
         if self._values['cpu_threads'] > 0:
             import torch
             torch.set_num_threads(self._values['cpu_threads'])
@@ -422,7 +219,7 @@ class ReconstructorNode(Node):
         gc.collect()
         gc.freeze()
         self._outputs = FrameOutputs(self._body, self._rec.fitter.joint_frames,
-                                     OutputOptions.from_values(self._values),
+                                     outputs,
                                      has_tf='tf' in self._pubs)
         log.info(f'loaded {self._body.name} body model ({self._body.num_vertices} vertices, '
                  f'{len(self._body.faces)} triangles) and network on {self._rec.device} in '
@@ -446,30 +243,34 @@ class ReconstructorNode(Node):
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
         new = dict(self._values)
         for p in params:
-            if p.name in READ_ONLY and p.value != self._values.get(p.name):
+            spec = P.SCHEMA.get(p.name[len(P.ADVANCED):] if p.name.startswith(P.ADVANCED)
+                                else p.name)
+            if spec is None or spec.ros_name != p.name:  # use_sim_time, ...
+                continue
+            if spec.restart and p.value != self._values[spec.name]:
                 return SetParametersResult(successful=False,
                                            reason=f'{p.name} is read-only: restart the node '
                                                   'to change it')
-            if p.name in new:
-                new[p.name] = p.value
-        reason = validate(new)
+            new[spec.name] = p.value
+        reason = P.check(new)
         return SetParametersResult(successful=reason is None, reason=reason or '')
 
     def _after_set_parameters(self, params: list[Parameter]):
         # Runs on the executor thread after a successful change.
+        groups = set()
         for p in params:
-            if p.name in self._values:
-                self._values[p.name] = p.value
-        names = {p.name for p in params}
+            spec = P.lookup(p.name)
+            if spec is not None and spec.ros_name == p.name:
+                self._values[spec.name] = p.value
+                groups.add(spec.group)
+        config, outputs, node = P.split(self._values)
         if hasattr(self, '_outputs'):  # (set once the model is loaded)
-            self._outputs.opts = OutputOptions.from_values(self._values)
-        if 'diagnostics_period_s' in names:
-            self._diag_timer.timer_period_ns = int(self._values['diagnostics_period_s'] * 1e9)
-        core = {f.name for f in fields(PipelineConfig)} | {
-            f'fit.{f.name}' for f in fields(FitConfig)}
-        if names & core:
+            self._outputs.opts = outputs
+        if 'node' in groups:
+            self._diag_timer.timer_period_ns = int(node.diagnostics_period_s * 1e9)
+        if groups & {'core', 'fit'}:
             with self._lock:
-                self._pending_config = config_from_values(self._values)
+                self._pending_config = config
         self.get_logger().info('parameters changed: ' + ', '.join(
             f'{p.name}={p.value}' for p in params))
 
@@ -748,7 +549,7 @@ def main(argv: list[str] | None = None) -> int:
     """
     args = ros_args(NODE_NAME, argv)
     if '--print-params' in args[1:args.index('--ros-args') if '--ros-args' in args else None]:
-        sys.stdout.write(params_yaml())
+        sys.stdout.write(P.params_yaml())
         return 0
     return run_nodes(NODE_NAME, args, lambda: [ReconstructorNode()])
 

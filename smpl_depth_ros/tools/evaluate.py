@@ -113,17 +113,16 @@ def main(argv=None) -> int:
     from smpl_depth_ros.pipeline import Reconstructor
     from smpl_depth_ros.types import InputError
 
-    from smpl_depth_ros.offline import (ProcessBagError, config_from_params,
-                                        parse_param_overrides)
+    from smpl_depth_ros import params as P
 
     gt = _load_gt(args.bag, args.gt)
     cfg = PipelineConfig(backend=str(gt['body_model']), device=args.device,
                          tracking=args.tracking, weights_path=args.weights,
                          flip_tta=args.flip_tta)
     try:
-        overrides = parse_param_overrides(args.param)
-        cfg, _, _ = config_from_params(overrides, base=cfg)
-    except ProcessBagError as e:
+        overrides = P.parse_overrides(args.param)
+        cfg = P.from_params(overrides, base=cfg)[0]
+    except P.ParamError as e:
         print(f'evaluate: error: {e}', file=sys.stderr)
         return 2
     rec = Reconstructor(cfg)

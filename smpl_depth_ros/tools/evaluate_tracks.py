@@ -36,8 +36,7 @@ def main(argv=None) -> int:
     from smpl_depth_ros.bagio import iter_depth_bag
     from smpl_depth_ros.config import PipelineConfig
     from smpl_depth_ros.evaluation import TrackScore, write_json
-    from smpl_depth_ros.offline import (ProcessBagError, config_from_params,
-                                        parse_param_overrides)
+    from smpl_depth_ros import params as P
     from smpl_depth_ros.pipeline import Reconstructor
     from smpl_depth_ros.tools.synth_bag import gt_path
     from smpl_depth_ros.types import InputError
@@ -55,8 +54,8 @@ def main(argv=None) -> int:
     cfg = PipelineConfig(backend=str(gt['body_model']), device=args.device,
                          max_persons=n_persons)
     try:
-        cfg, _, _ = config_from_params(parse_param_overrides(args.param), base=cfg)
-    except ProcessBagError as e:
+        cfg = P.from_params(P.parse_overrides(args.param), base=cfg)[0]
+    except P.ParamError as e:
         print(f'evaluate_tracks: error: {e}', file=sys.stderr)
         return 2
     rec = Reconstructor(cfg)

@@ -43,14 +43,14 @@ def run_sweep(sensors, bins, frames, seed, poses, overrides, strength=1.0, progr
     """The sweep's rows: one dict per (sensor, bin) with its metrics (see module doc)."""
     from smpl_depth_ros.body import load_body_model
     from smpl_depth_ros.config import PipelineConfig
-    from smpl_depth_ros.offline import config_from_params
+    from smpl_depth_ros.params import from_params
     from smpl_depth_ros.pipeline import Reconstructor
     from smpl_depth_ros.synth.poses import PoseSampler
     from smpl_depth_ros.synth.sensors import SENSORS
     from smpl_depth_ros.types import InputError
 
     base = PipelineConfig(tracking=False)
-    cfg, _, _ = config_from_params(overrides, base=base)
+    cfg = from_params(overrides, base=base)[0]
     body = load_body_model(cfg.backend, cfg.model_path or None)
     sampler = PoseSampler(body, mode=poses)
     faces = body.faces_numpy()
@@ -204,7 +204,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    from smpl_depth_ros.offline import ProcessBagError, parse_param_overrides
+    from smpl_depth_ros.params import ParamError, parse_overrides
     from smpl_depth_ros.synth.sensors import SENSORS
     names = list(SENSORS) if args.sensors == 'all' else [
         n for n in args.sensors.split(',') if n]
@@ -220,7 +220,7 @@ def main(argv=None) -> int:
     edges = np.round(np.arange(f, t + 1e-9, s), 3)
     bins = [(float(a), float(b)) for a, b in zip(edges[:-1], edges[1:])]
     try:
-        overrides = parse_param_overrides(args.param)
+        overrides = parse_overrides(args.param)
         t0 = time.perf_counter()
         rows = run_sweep(names, bins, args.frames, args.seed, args.poses, overrides,
                          args.strength,
@@ -229,7 +229,7 @@ def main(argv=None) -> int:
                              f"rec {r['reconstructed']:.2f} pve {r['pve_mm']} surf "
                              f"{r['surface_mm_median']} miou {r['miou']}",
                              file=sys.stderr, flush=True))
-    except ProcessBagError as e:
+    except ParamError as e:
         print(f'sweep: {e}', file=sys.stderr)
         return 2
     out = dict(summary=summarise(rows), rows=rows, seed=args.seed, poses=args.poses,
