@@ -220,3 +220,17 @@ class NodeOptions:
                                         range=(0.05, 3600.0), **_A)
     warn_throttle_s: float = param(5.0, 'per-problem throttle of warnings (s)',
                                    range=(0.0, 3600.0), **_A)
+
+
+# -- solver constants (Levenberg-Marquardt) --
+LM_DAMPING_START = 1e-3  # initial damping mu of H + mu diag(H)
+LM_DAMPING_UP = 10  # mu is multiplied by this when a step raises the energy (rejected)
+LM_DAMPING_DOWN = 3  # mu is divided by this when a step is accepted
+LM_DAMPING_MIN = 1e-6  # lower bound of mu
+LM_RIDGE = 1e-9  # added to the damped system's diagonal (keeps it invertible)
+LM_STEP_TOL = 1e-5  # converged when no component of the step exceeds this
+LM_SHAPE_MARGIN = 1e-4  # shape steps are clipped this far inside the model's shape bounds
+LM_SHAPE_HOLD_DIV = 3  # cold fits to surface points hold the shape for iterations // this
+LM_ANNEAL_DIV = 2  # the robust scale reaches gm_sigma after iterations / this
+LM_RELIN_TOL = 0.03  # shape change that triggers a re-linearisation of the rest geometry
+LM_FREEZE = 1e3  # Hessian diagonal that holds an unsupported joint (data terms are O(1))

@@ -17,7 +17,7 @@ from smpl_depth_ros.body import load_body_model
 from smpl_depth_ros.config import PipelineConfig
 from smpl_depth_ros.fit import Fitter, backproject  # noqa: F401  (re-exported)
 from smpl_depth_ros.fit.freespace import FreeSpace, supporting_planes
-from smpl_depth_ros.fit.fitter import vertex_normals
+from smpl_depth_ros.fit.rig import vertex_normals
 from smpl_depth_ros.net.infer import CorrespondenceNet, broad_weights
 from smpl_depth_ros.net.preprocess import (NEAR_RANGE, crop_depth, find_persons,
                                            network_input, pixel_points, split_side_by_side)

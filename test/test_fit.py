@@ -100,13 +100,13 @@ def test_objective_gradients(body):
 def test_solver_jacobian_matches_finite_differences(body):
     """The fast solver's analytic LBS Jacobian (rotation increments of every joint,
     translation, shape) against central differences of its own residuals."""
-    from smpl_depth_ros.fit.fitter import _rodrigues
+    from smpl_depth_ros.fit.rig import rodrigues
     rng, V, _, front = _scene(body, 5)
     fit = Fitter(body)
     ids = front[::15]
     pts = V[ids].astype(np.float64) + 0.01
     nj = len(fit.rig.jb)
-    rot = _rodrigues(rng.normal(0, 0.3, (nj, 3)))
+    rot = rodrigues(rng.normal(0, 0.3, (nj, 3)))
     transl = np.array([0.1, -0.2, 3.0])
     shape = fit.rig.shape_mean + rng.uniform(-0.05, 0.05, len(fit.rig.shape_mean))
     prob = fit._problem(shape, ids, False)
@@ -115,7 +115,7 @@ def test_solver_jacobian_matches_finite_differences(body):
     assert J.shape == (len(ids), 3, 3 * nj + 3 + len(shape))
 
     def residuals(d):
-        state = (_rodrigues(d[:3 * nj].reshape(nj, 3)) @ rot, transl + d[3 * nj:3 * nj + 3],
+        state = (rodrigues(d[:3 * nj].reshape(nj, 3)) @ rot, transl + d[3 * nj:3 * nj + 3],
                  shape + d[3 * nj + 3:])
         return fit._evaluate(state, pts, ids, False, prob)[1]
     h = 1e-6
@@ -375,7 +375,7 @@ def test_joint_baseline_and_lbfgs_reference(body):
 
 
 def test_aggregate_by_vertex_is_robust():
-    from smpl_depth_ros.fit.fitter import aggregate_by_vertex
+    from smpl_depth_ros.fit.targets import aggregate_by_vertex
     rng = np.random.default_rng(3)
     # Vertex 7: 40 points around (1, 2, 3) plus 12 gross outliers; vertex 9: 20 scattered
     # points only (what wrong correspondences to a hidden vertex look like).
@@ -392,7 +392,7 @@ def test_aggregate_by_vertex_is_robust():
 
 
 def test_aggregate_drops_isolated_wrong_singletons():
-    from smpl_depth_ros.fit.fitter import aggregate_by_vertex
+    from smpl_depth_ros.fit.targets import aggregate_by_vertex
     rng = np.random.default_rng(4)
     # A 10x10 patch of template vertices 3 cm apart, seen 1:1 (template = observation),
     # 10 pixels per vertex; vertex 100 is an edge vertex seen by a single pixel; 30

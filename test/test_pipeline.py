@@ -319,7 +319,7 @@ def test_icp_step_matches_pixels_to_vertices_facing_the_camera(rec, monkeypatch)
     fit.icp_front_cos (1 = any vertex) some pixels of the front surface snap to a nearer
     vertex on the far side of a limb or silhouette; with it (the default) none do, and the
     matches lie closer to the truth on the template."""
-    from smpl_depth_ros.fit.fitter import vertex_normals
+    from smpl_depth_ros.fit.rig import vertex_normals
     from smpl_depth_ros.net.preprocess import pixel_points
     f = _frame(rec, 9)
     d, K, V, vid = f['depth'], f['K'], f['vertices'], f['vertex_ids']
