@@ -114,3 +114,13 @@ class PipelineConfig:
         fit_kw = {k: kw.pop(k) for k in list(kw) if k in fit_names}
         cfg = replace(self, **kw)
         return replace(cfg, fit=replace(cfg.fit, **fit_kw)) if fit_kw else cfg
+
+
+# -- person-finding constants --
+# Which of the candidates net.preprocess.find_persons returns the pipeline takes as persons.
+EXTRA_CANDIDATES = 2  # candidates looked for beyond max_persons (some may be no person)
+MIN_BODY_PIXELS = 60  # network-foreground crop pixels needed to attempt a fit
+MIN_BODY_SHARE = 0.4  # a person: the network sees a body in this share of its blob's pixels
+MIN_PART_SHARE = 0.02  # body_score: a part counts when it covers this share of the body
+MIN_BEHIND = 0.3  # a blob behind a person is a tracked one with this share of its pixels
+MAX_CLAIMED = 0.5  # a further person: at most this share of its pixels an earlier one's
