@@ -234,3 +234,13 @@ LM_SHAPE_HOLD_DIV = 3  # cold fits to surface points hold the shape for iteratio
 LM_ANNEAL_DIV = 2  # the robust scale reaches gm_sigma after iterations / this
 LM_RELIN_TOL = 0.03  # shape change that triggers a re-linearisation of the rest geometry
 LM_FREEZE = 1e3  # Hessian diagonal that holds an unsupported joint (data terms are O(1))
+
+
+# -- person-finding constants --
+# Which of the candidates net.preprocess.find_persons returns the pipeline takes as persons.
+EXTRA_CANDIDATES = 2  # candidates looked for beyond max_persons (some may be no person)
+MIN_BODY_PIXELS = 60  # network-foreground crop pixels needed to attempt a fit
+MIN_BODY_SHARE = 0.4  # a person: the network sees a body in this share of its blob's pixels
+MIN_PART_SHARE = 0.02  # body_score: a part counts when it covers this share of the body
+MIN_BEHIND = 0.3  # a blob behind a person is a tracked one with this share of its pixels
+MAX_CLAIMED = 0.5  # a further person: at most this share of its pixels an earlier one's

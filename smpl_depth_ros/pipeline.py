@@ -1,26 +1,28 @@
 """The Reconstructor: depth (H, W) metres + K -> FrameResult (no ROS).
 
 preprocess (find persons, crop) -> double U-Net -> Eq. 2 correspondences -> fit
-(warm-started from the previous frame while the track holds) -> result. The live node and
-offline processing are two thin drivers of this class.
+(warm-started from the previous frame while the track holds) -> ICP refinement (refine)
+-> labels from the fitted mesh (segmentation) -> result. The live node and offline
+processing are two thin drivers of this class.
 """
 from __future__ import annotations
 
 import time
-from dataclasses import replace
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 
 from smpl_depth_ros.body import load_body_model
-from smpl_depth_ros.config import PipelineConfig
+from smpl_depth_ros.config import (EXTRA_CANDIDATES, MAX_CLAIMED, MIN_BEHIND, MIN_BODY_PIXELS,
+                                   MIN_BODY_SHARE, MIN_PART_SHARE, PipelineConfig)
 from smpl_depth_ros.fit import Fitter, backproject  # noqa: F401  (re-exported)
 from smpl_depth_ros.fit.freespace import FreeSpace, supporting_planes
-from smpl_depth_ros.fit.rig import vertex_normals
 from smpl_depth_ros.net.infer import CorrespondenceNet, broad_weights
-from smpl_depth_ros.net.preprocess import (NEAR_RANGE, crop_depth, find_persons,
-                                           network_input, pixel_points, split_side_by_side)
+from smpl_depth_ros.net.preprocess import (crop_depth, find_persons, network_input,
+                                           pixel_points, split_side_by_side)
+from smpl_depth_ros.refine import (SurfaceParts, facing_camera, near_surface_pixels,
+                                   refine_correspondences)
+from smpl_depth_ros.segmentation import LabelSurface, paste_labels
 from smpl_depth_ros.sensor_noise import (AutoNoise, NoiseModel, check_sensor, noise_model,
                                          scaled_reject_residual, scaled_spread)
 from smpl_depth_ros.tracking import Tracker, candidate_centre
@@ -29,13 +31,6 @@ from smpl_depth_ros.types import FrameResult, InputError, PersonResult
 MAX_FOV_DEG = 170.0  # intrinsics implying a wider field of view are rejected ...
 MAX_FOCAL_PER_PIXEL = 1e4  # ... and so are focal lengths above this many image sides
 MIN_FOV_DEG = round(float(np.degrees(2 * np.arctan(0.5 / MAX_FOCAL_PER_PIXEL))), 4)
-MIN_BODY_PIXELS = 60  # network-foreground crop pixels needed to attempt a fit
-PLANE_M = 0.02  # 'model' labels: pixels this near a scene plane (the floor under a foot)
-                # are not taken into the person by the margin (val_s2 mIoU 0.847 -> 0.856)
-MODEL_LABEL_POINTS = 8000  # segmentation 'model': pixels labelled per person, at most ~
-SAME_SURFACE_M = 0.03  # ... the others take their cell's part when this close in depth
-MIN_BEHIND = 0.3  # a blob behind a person is a tracked one with this share of its pixels
-MAX_CLAIMED = 0.5  # a further person: at most this share of its pixels an earlier one's
 CONF_POINTS = 15.0  # joint_confidence: pixels for a joint's support to count as ample
 CONF_RESIDUAL_M = 0.06  # joint_confidence: residual scale (widened for sensor noise)
 AUTO_FIRST = 10  # sensor 'auto': the noise is measured on each of the first frames ...
@@ -44,10 +39,6 @@ BROAD_NETWORK_FOR = ('stereo',)  # sensor classes whose frames use the broad net
                                 # weights_path ''): chosen on the validation sweep, where
                                 # it found 6-18 points more of the stereo frames and was
                                 # 0-1 mm worse on time of flight, 3-5 mm on structured light
-_CORNER = 0.6  # barycentric weight of a triangle's corner samples (0.5 / 0.7: worse)
-_CORNER_BARY = np.array([[_CORNER, (1 - _CORNER) / 2, (1 - _CORNER) / 2],
-                         [(1 - _CORNER) / 2, _CORNER, (1 - _CORNER) / 2],
-                         [(1 - _CORNER) / 2, (1 - _CORNER) / 2, _CORNER]])
 
 
 def resolve_device(name: str) -> torch.device:
@@ -103,7 +94,8 @@ def validate_input(depth: np.ndarray, K: np.ndarray, max_pixels: int) -> np.ndar
 def body_score(crop, valid: np.ndarray, labels: np.ndarray, image_shape) -> float:
     """How much of a body the network sees in a candidate: the share of the candidate's
     own blob pixels (those of `valid`, its crop's valid input pixels, that map into its
-    full-image mask) labelled body, times the number of parts covering >= 2 % of them.
+    full-image mask) labelled body, times the number of parts covering >= 2 % of them
+    (MIN_PART_SHARE).
     The blob's share, not the crop's: a crop's background grows with a person's reach,
     while a person-sized box fills its crop (and outranked a person in front of a wall)."""
     blob = valid
@@ -112,7 +104,7 @@ def body_score(crop, valid: np.ndarray, labels: np.ndarray, image_shape) -> floa
         blob = blob & inside & crop.mask[rr, cc]
     fg = (labels > 0) & blob
     n = max(int(fg.sum()), 1)
-    parts = int((np.bincount(labels[fg], minlength=2)[1:] >= 0.02 * n).sum())
+    parts = int((np.bincount(labels[fg], minlength=2)[1:] >= MIN_PART_SHARE * n).sum())
     return n / max(int(blob.sum()), 1) * parts
 
 
@@ -166,23 +158,8 @@ class Reconstructor:
                            if broad else None)
         self.fitter = Fitter(self.body, config.fit)
         self.faces = self.body.faces_numpy()
-        parts = self.body.part_labels.cpu().numpy()
-        valid = self.body.valid_vertices.cpu().numpy()
-        self._part_of_vertex = parts
-        # Segmentation 'model': the fitted surface is sampled at its vertices and at 3
-        # points per triangle near its corners, each sample labelled with its corner's
-        # part, so the nearest sample follows the parts' borders on the surface (each
-        # triangle split by its largest barycentric weight, as the renderer labels
-        # pixels) better than the nearest vertex (val_s2, true meshes: 0.933 -> 0.955).
-        self._valid_vertex_ids = np.flatnonzero(valid)
-        faces = self.faces[valid[self.faces].all(1)]
-        self._label_faces = faces
-        self._label_parts = np.concatenate([parts[self._valid_vertex_ids],
-                                            parts[faces].reshape(-1)])
-        self._label_part_ids = [np.flatnonzero(self._label_parts == p)
-                                for p in range(int(parts.max()) + 1)]
-        self._part_vertices = [np.flatnonzero((parts == p) & valid)
-                               for p in range(int(parts.max()) + 1)]
+        self.surface = SurfaceParts.from_body(self.body)  # for the ICP refinement
+        self.label_surface = LabelSurface.from_body(self.body)  # for segmentation 'model'
         self.tracker = Tracker(config.track_timeout_s, config.track_gate_m)
         self._joint_adjacency = joint_adjacency(self.body.joint_parents)
         self._auto = AutoNoise() if config.sensor == 'auto' else None
@@ -271,7 +248,7 @@ class Reconstructor:
         t = self._clock(stamp_ns)
         self.tracker.expire(t)
         crops = find_persons(d, K, cfg.depth_min, cfg.depth_max, cfg.min_person_pixels,
-                             max_persons=max(cfg.max_persons, 1) + 2, noise=excess)
+                             max_persons=max(cfg.max_persons, 1) + EXTRA_CANDIDATES, noise=excess)
         t1 = time.perf_counter()
         labels_full = np.zeros(d.shape, np.uint8)
         network_full = (np.zeros(d.shape, np.uint8) if cfg.segmentation == 'model'
@@ -291,15 +268,13 @@ class Reconstructor:
             # against a wall may be hidden in a blob too big for one: peel its planes.
             tp = time.perf_counter()
             again = find_persons(d, K, cfg.depth_min, cfg.depth_max, cfg.min_person_pixels,
-                                 max_persons=max(cfg.max_persons, 1) + 2, peel=True,
+                                 max_persons=max(cfg.max_persons, 1) + EXTRA_CANDIDATES, peel=True,
                                  noise=excess)
             timings['preprocess'] += (time.perf_counter() - tp) * 1e3
             if [int(c.mask.sum()) for c in again] != [int(c.mask.sum()) for c in crops]:
                 persons = self._persons(d, K, again, stamp_ns, timings, labels_full,
                                         network_full, rejected, noise, seen)
-        for tr in self.tracker.tracks:  # warm starts come from the previous frame only
-            if id(tr) not in seen:
-                tr.fit = None
+        self.tracker.forget_fits(keep=seen)  # warm starts come from the previous frame only
         if not persons:
             if rejected:
                 best, limit = min(rejected)
@@ -374,8 +349,8 @@ class Reconstructor:
                 timings['network'] += (time.perf_counter() - tn) * 1e3
             fg = (lab[i] > 0) & (x[i][1] > 0)
             # A candidate is a person when the network sees a body in most of it.
-            if fg.sum() < MIN_BODY_PIXELS or fg.sum() < 0.4 * max(int(x[i][1].sum()), 1) \
-                    * self._blob_fraction(crop, x[i][1]):
+            if fg.sum() < MIN_BODY_PIXELS or fg.sum() < MIN_BODY_SHARE \
+                    * max(int(x[i][1].sum()), 1) * self._blob_fraction(crop, x[i][1]):
                 continue
             excess = 0.0 if noise is None else float(noise.excess(crop.median_depth))
             fitter = self.fitter.for_noise(excess)
@@ -435,27 +410,27 @@ class Reconstructor:
             # ICP inside the predicted parts on this frame's fitted mesh, then a refit, to
             # which the pixels the network left out join where they lie on the mesh.
             for _ in range(cfg.fit.tracking_icp_rounds if tracked else cfg.fit.icp_rounds):
-                front = self._facing_camera(fit.vertices)
-                vids = self._refine_correspondences(pts, vids, fit.vertices, front)
-                xp, xv = self._near_surface_pixels(d, K, fit.vertices, r, c, crop, front,
-                                                   fitter.cfg.icp_margin_m)
+                front = facing_camera(fit.vertices, self.faces, cfg.fit.icp_front_cos)
+                vids = refine_correspondences(pts, vids, fit.vertices, self.surface, front)
+                xp, xv = near_surface_pixels(d, K, fit.vertices, r, c, crop, self.surface,
+                                             front, fitter.cfg.icp_margin_m)
                 fit = fitter.fit(np.concatenate([pts, xp]), np.concatenate([vids, xv]),
-                                      init=fit.params, fix_shape=False,
-                                      iterations=cfg.fit.tracking_iterations,
-                                      free_space=free,
-                                      tangent_weight=cfg.fit.icp_tangent_weight)
+                                 init=fit.params, fix_shape=False,
+                                 iterations=cfg.fit.tracking_iterations,
+                                 free_space=free,
+                                 tangent_weight=cfg.fit.icp_tangent_weight)
             if track is None:
                 track = self.tracker.new(centre, t)
             if cfg.tracking:
-                track.fit, track.fit_time, track.fit_stamp = fit, t, stamp_ns
-                if not tracked:  # a new track keeps the cold fit's shape until sampled
-                    track.shapes = [np.zeros(len(fit.params.shape)), 0, 0]
+                track.keep_fit(fit, t, stamp_ns, tracked)
             else:
                 track.fit = None
             timings['fit'] += (time.perf_counter() - tf) * 1e3
             tl = time.perf_counter()
-            mask = self._paste_labels(labels_full, crop, lab[i], d, K, fit.vertices,
-                                      network_full)
+            mask = paste_labels(labels_full, network_full, crop, lab[i], d, K, fit.vertices,
+                                self.label_surface, segmentation=cfg.segmentation,
+                                margin_m=cfg.model_label_margin_m,
+                                keep_network_m=cfg.model_label_keep_network_m)
             timings['labels'] += (time.perf_counter() - tl) * 1e3
             seen.add(id(track))
             Tracker.seen(track, fit.joints[0], t, mask)
@@ -515,85 +490,6 @@ class Reconstructor:
         return ([crops[i] for i in order], [x[i] for i in order], [lab[i] for i in order],
                 [coords[i] for i in order], plain)
 
-    def _facing_camera(self, vertices) -> np.ndarray | None:
-        """(V,) bool: the vertices of a fitted mesh that face the camera (the cosine of
-        their normal and the view ray below fit.icp_front_cos), or None when that is 1
-        (any vertex). A pixel sees the front of the surface: the ICP step and the pixels
-        the network left out are matched to these only."""
-        cos_max = self.config.fit.icp_front_cos
-        if cos_max >= 1.0:
-            return None
-        v = np.asarray(vertices, np.float64)
-        ray = v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-9)
-        return (vertex_normals(v, self.faces) * ray).sum(1) < cos_max
-
-    def _refine_correspondences(self, pts, vids, vertices, front=None):
-        """ICP step inside the predicted part: each point takes the nearest vertex of the
-        fitted mesh among the vertices of its Eq. 2 vertex's part (the network decides
-        the part, the geometry the exact vertex) that face the camera (`front`, see
-        `_facing_camera`; default: computed here; a part with fewer than 3 of them
-        offers all its vertices). A pixel sees the front of the surface; the nearest
-        vertex of a thin fitted limb or of a silhouette can be one on its far side
-        (val_s2 32.8 -> 32.5 mm, val seq_s5 single frames 21.7 -> 21.4)."""
-        pp = self._part_of_vertex[vids]
-        out = np.array(vids, np.int64)
-        if front is None:
-            front = self._facing_camera(vertices)
-        for p in np.unique(pp):
-            vi = self._part_vertices[p]
-            if front is not None and front[vi].sum() >= 3:
-                vi = vi[front[vi]]
-            if not len(vi):
-                continue
-            m = pp == p
-            out[m] = vi[cKDTree(vertices[vi]).query(pts[m])[1]]
-        return out
-
-    def _near_surface_pixels(self, d, K, vertices, r, c, crop, front=None, margin=None):
-        """Pixels the network did not give the person that lie within
-        fit.icp_margin_m of its fitted mesh (a hand, the edge of an arm the network
-        called background), with their nearest fitted vertex facing the camera (`front`,
-        see `_facing_camera`; default: computed here): (N, 3) float32 points, (N,) vertex
-        ids. Looked for around the mesh's projection; `r, c` are the person's pixels
-        already in the fit; other candidates' blobs and the scene planes (PLANE_M, the
-        floor under a foot) are left out. Matched to any vertex, a pixel can take one on
-        the far side of a thin limb or a silhouette, as in the ICP step (val_s2 32.5 ->
-        31.9 mm, val seq_s5 single frames 21.4 -> 21.0). `margin`: fit.icp_margin_m
-        unless given (widened for a noisy sensor)."""
-        margin = float(self.config.fit.icp_margin_m if margin is None else margin)
-        none = np.zeros((0, 3), np.float32), np.zeros(0, np.int64)
-        ids = self._valid_vertex_ids
-        V = vertices[ids]
-        if margin <= 0 or not len(V) or V[:, 2].min() <= 0:
-            return none
-        H, W = d.shape
-        uv = V @ K.T
-        uv = uv[:, :2] / uv[:, 2:]
-        u0, v0 = np.clip(np.floor(uv.min(0)).astype(int) - 2, 0, (W, H))
-        u1, v1 = np.clip(np.ceil(uv.max(0)).astype(int) + 3, 0, (W, H))
-        if u1 <= u0 or v1 <= v0:
-            return none
-        win = d[v0:v1, u0:u1]
-        cand = (win > V[:, 2].min() - margin) & (win < V[:, 2].max() + margin)
-        inside = (r >= v0) & (r < v1) & (c >= u0) & (c < u1)
-        cand[r[inside] - v0, c[inside] - u0] = False
-        if crop.exclude is not None:
-            cand &= ~crop.exclude[v0:v1, u0:u1]
-        rr, cc = np.nonzero(cand)
-        P = pixel_points(rr + v0, cc + u0, win[rr, cc], K)
-        for pl in crop.planes:
-            P = P[np.abs(P @ pl[:3] - pl[3]) > PLANE_M]
-        if not len(P):
-            return none
-        if front is None:
-            front = self._facing_camera(vertices)
-        if front is not None and front[ids].sum() >= 3:
-            ids = ids[front[ids]]
-            V = vertices[ids]
-        dist, idx = cKDTree(V).query(P, distance_upper_bound=margin)
-        ok = np.isfinite(dist)
-        return P[ok].astype(np.float32), ids[idx[ok]]
-
     def _fit(self, pts, vids, stamp_ns, track=None, free=None, fitter=None):
         """Fit one person: warm-started from the previous frame while the track holds
         (refining the correspondences on the previous, moved mesh was measured to lock
@@ -607,40 +503,28 @@ class Reconstructor:
         """
         cfg = self.config
         fitter = fitter or self.fitter
-        if cfg.tracking and track is not None and track.fit is not None:
-            prev_stamp = track.fit_stamp
-            gap_ok = (stamp_ns is None or prev_stamp is None or
-                      0 <= (stamp_ns - prev_stamp) * 1e-9 <= cfg.tracking_max_gap_s)
-            if gap_ok:
-                init = track.fit.params
-                shapes = track.shapes
-                if shapes is not None and shapes[1]:  # pose at the mean shape
-                    mean = shapes[0] / shapes[1]
-                    init = replace(init, shape=mean.astype(np.asarray(init.shape).dtype))
-                fit = fitter.fit(pts, vids, init=init, free_space=free,
-                                 temporal_weight=cfg.fit.lambda_temporal)
-                if fit.median_residual <= fitter.cfg.lost_residual_m:
-                    self._sample_shape(pts, vids, fit, track.shapes, fitter)
-                    return fit, vids, True
+        init = (track.warm_start(stamp_ns, cfg.tracking_max_gap_s)
+                if cfg.tracking and track is not None else None)
+        if init is not None:
+            fit = fitter.fit(pts, vids, init=init, free_space=free,
+                             temporal_weight=cfg.fit.lambda_temporal)
+            if fit.median_residual <= fitter.cfg.lost_residual_m:
+                self._sample_shape(pts, vids, fit, track, fitter)
+                return fit, vids, True
         fit = fitter.fit(pts, vids, free_space=free)
         return fit, vids, False
 
-    def _sample_shape(self, pts, vids, fit, shapes, fitter=None) -> None:
+    def _sample_shape(self, pts, vids, fit, track, fitter=None) -> None:
         """Every `shape_sample_every`-th tracked frame, a short warm fit with the shape
         free adds a sample to the track's mean shape. One frame's shape is only as good as
         its correspondences; averaged over the track it is measured better (val seq_s5
         tracking 28.7 -> 25.9 mm; a shape oracle gains about as much). The cold fit's shape
         is not a sample: counted in, it measured 27.3 mm."""
-        every = self.config.shape_sample_every
-        if every <= 0 or shapes is None:
-            return
-        shapes[2] += 1
-        if shapes[2] % every:
+        if not track.shape_sample_due(self.config.shape_sample_every):
             return
         s = (fitter or self.fitter).fit(pts, vids, init=fit.params, fix_shape=False,
                                         iterations=2)
-        shapes[0] = shapes[0] + np.asarray(s.params.shape, np.float64)
-        shapes[1] += 1
+        track.add_shape_sample(s.params.shape)
 
     @staticmethod
     def _blob_fraction(crop, valid) -> float:
@@ -648,132 +532,3 @@ class Reconstructor:
         if crop.mask is None:
             return 1.0
         return min(1.0, float(crop.mask.sum()) / max(float(valid.sum()) * crop.scale ** 2, 1.0))
-
-    def _paste_labels(self, labels_full, crop, lab, depth, K, vertices, network_full
-                      ) -> np.ndarray:
-        """Write this person's labels into the full image and return its (H, W) mask.
-
-        The person's pixels are the valid ones in its crop window within NEAR_RANGE of its
-        median depth, others' blobs excluded. `network_full` gets the network's labels
-        (nearest-neighbour from the crop) where they say body. With segmentation 'model'
-        (the default) `labels_full` gets, on those pixels and on the ones within
-        `model_label_margin_m` of the fitted mesh (body the network missed: a hand, an
-        arm's edge), the part of the nearest fitted vertex: the fit, which draws on all
-        the frame's pixels and the body's shape, puts part borders where the body has
-        them (val_s2: mIoU 0.761 -> 0.858; the network's labels are kept beside them).
-        """
-        H, W = labels_full.shape
-        u0, v0 = max(int(np.floor(crop.u0)), 0), max(int(np.floor(crop.v0)), 0)
-        u1 = min(int(np.ceil(crop.u0 + crop.scale * crop.size)), W)
-        v1 = min(int(np.ceil(crop.v0 + crop.scale * crop.size)), H)
-        m = np.zeros((H, W), bool)
-        if u1 <= u0 or v1 <= v0:
-            return m
-        i = np.clip(((np.arange(v0, v1) + 0.5 - crop.v0) / crop.scale).astype(np.int64), 0,
-                    crop.size - 1)
-        j = np.clip(((np.arange(u0, u1) + 0.5 - crop.u0) / crop.scale).astype(np.int64), 0,
-                    crop.size - 1)
-        v = lab[np.ix_(i, j)]
-        dw = depth[v0:v1, u0:u1]
-        region = (dw > 0) & (np.abs(dw - crop.median_depth) < NEAR_RANGE)
-        if crop.exclude is not None:
-            region &= ~crop.exclude[v0:v1, u0:u1]
-        keep = (v > 0) & region
-        network_full[v0:v1, u0:u1][keep] = v[keep]
-        if self.config.segmentation == 'model':
-            keep, v = self._model_labels(region, keep, v, dw, K, u0, v0, vertices,
-                                         crop.planes)
-            labels_full[v0:v1, u0:u1][keep] = v[keep]
-        m[v0:v1, u0:u1] = keep
-        return m
-
-    def _model_labels(self, region, fg, net, dw, K, u0, v0, vertices, planes=()):
-        """(mask, labels) of a window from the fitted mesh: `fg` pixels and the `region`
-        ones within model_label_margin_m of a fitted vertex, each with the part of its
-        nearest vertex, except where the network's part `net` has a vertex within
-        model_label_keep_network_m as near (at a part border the fit is not sharper
-        than that). The margin does not reach within PLANE_M of a scene plane in
-        `planes` (Crop.planes): a foot's sole is within it of the floor it stands on
-        (the network's body pixels there are kept: measured worse without).
-
-        Large windows are labelled on a sub-grid of about MODEL_LABEL_POINTS pixels
-        first; a pixel then takes the label of the four cells around it when they agree
-        and its depth is on their surface, and is labelled on its own otherwise (part
-        borders and silhouettes stay exact, at a bounded cost).
-        """
-        if planes:
-            rr, cc = np.nonzero(region & ~fg)
-            pts = pixel_points(rr + v0, cc + u0, dw[rr, cc], K)
-            on = np.zeros(len(rr), bool)
-            for pl in planes:
-                on |= np.abs(pts @ pl[:3] - pl[3]) <= PLANE_M
-            region = region.copy()
-            region[rr[on], cc[on]] = False
-        # One tree over the surface samples, and one per part as needed, shared by both
-        # passes.
-        samples = np.concatenate([vertices[self._valid_vertex_ids], np.einsum(
-            'sk,fkd->fsd', _CORNER_BARY, vertices[self._label_faces]).reshape(-1, 3)])
-        tree, part_trees = cKDTree(samples), {}
-        st = max(1, int(np.ceil(np.sqrt(np.count_nonzero(region) / MODEL_LABEL_POINTS))))
-        if st == 1:
-            rr, cc = np.nonzero(region)
-            out = np.zeros(fg.shape, np.uint8)
-            out[rr, cc] = self._label_pixels(rr, cc, dw, fg, net, K, u0, v0, samples, tree,
-                                             part_trees)
-            return out > 0, out
-        h, w = region.shape
-        rr, cc = np.nonzero(region[::st, ::st])
-        coarse = np.zeros(((h + st - 1) // st, (w + st - 1) // st), np.uint8)  # 0: none
-        coarse[rr, cc] = self._label_pixels(rr * st, cc * st, dw, fg, net, K, u0, v0,
-                                            samples, tree, part_trees)
-        # A pixel between four cells that carry the same label (0: not the person's, or
-        # no depth), on their surface, takes it (agreement found on the sub-grid).
-        pad = np.pad(coarse, ((0, 1), (0, 1)), mode='edge')
-        agree = (coarse == pad[1:, :-1]) & (coarse == pad[:-1, 1:]) & (coarse == pad[1:, 1:])
-
-        def up(a):
-            return np.repeat(np.repeat(a, st, 0), st, 1)[:h, :w]
-        c = up(coarse)
-        same = up(agree) & (np.abs(dw - up(dw[::st, ::st])) < SAME_SURFACE_M)
-        out = np.where(same & region, c, 0).astype(np.uint8)
-        rr, cc = np.nonzero(region & ~same)
-        out[rr, cc] = self._label_pixels(rr, cc, dw, fg, net, K, u0, v0, samples, tree,
-                                         part_trees)
-        return out > 0, out
-
-    def _label_pixels(self, rr, cc, dw, fg, net, K, u0, v0, samples, tree, part_trees):
-        """(N,) part of the window pixels (rr, cc) from the fitted mesh (0: not the
-        person's); see _model_labels. `samples`: the fitted surface's label samples,
-        `tree` over them; `part_trees`: part -> KD-tree of its samples, filled as
-        needed."""
-        cfg = self.config
-        margin = float(cfg.model_label_margin_m)
-        pts = pixel_points(rr + v0, cc + u0, dw[rr, cc], K)
-        isfg = fg[rr, cc]
-        part = np.zeros(len(pts), np.int64)
-        if isfg.any():
-            q = pts[isfg]
-            dist, idx = tree.query(q)
-            pf = self._label_parts[idx]
-            nf = net[rr[isfg], cc[isfg]].astype(np.int64)
-            keep_net = float(cfg.model_label_keep_network_m)
-            if keep_net > 0:
-                for p in np.unique(nf[pf != nf]):
-                    vi = self._label_part_ids[p]
-                    m = np.flatnonzero((nf == p) & (pf != nf))
-                    if len(vi) and len(m):
-                        if p not in part_trees:
-                            part_trees[p] = cKDTree(samples[vi])
-                        dp = part_trees[p].query(q[m])[0]
-                        pf[m[dp <= dist[m] + keep_net]] = p
-            part[isfg] = pf
-        rest = np.flatnonzero(~isfg)
-        if margin > 0 and len(rest):
-            lo, hi = samples.min(0) - margin, samples.max(0) + margin
-            q = pts[rest]
-            rest = rest[np.all((q > lo) & (q < hi), axis=1)]
-            if len(rest):
-                dist, idx = tree.query(pts[rest], distance_upper_bound=margin)
-                ok = np.isfinite(dist)
-                part[rest[ok]] = self._label_parts[idx[ok]]
-        return part

@@ -18,11 +18,13 @@ A track keeps its ID while it is seen, and for up to `timeout_s` seconds unseen 
 occlusions, a missed frame); after that it is dropped and a person appearing there gets a
 new ID. IDs start at 1 and are never reused by one `Tracker` (one node run, one bag).
 Only a track seen in the previous frame within the pipeline's `tracking_max_gap_s` is
-warm-started; older ones give their ID only.
+warm-started (`Track.warm_start`); older ones give their ID only. A track also keeps the
+samples of its mean shape, at which its tracked frames fit the pose (`Track.keep_fit`,
+`Track.shape_sample_due`, `Track.add_shape_sample`).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -47,6 +49,7 @@ class Track:
         last_seen: time it was last seen (s; the frame stamps' clock).
         fit: its last fit (fit.fitter.FitResult) while it may be warm-started, else None.
         fit_time: time of that fit (s).
+        fit_stamp: stamp of that fit's frame (ns; None: the frame had none).
         mask: (H, W) bool, its pixels in the last frame it was seen.
         shapes: [sum of shape samples, count, tracked frames] (the pipeline's mean shape).
         frames: frames it has been seen in.
@@ -58,12 +61,53 @@ class Track:
     velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
     fit: object = None
     fit_time: float = 0.0
+    fit_stamp: int | None = None
     mask: np.ndarray | None = None
     shapes: list | None = None
     frames: int = 0
 
     def predicted(self, t: float) -> np.ndarray:
         return self.centre + self.velocity * max(0.0, t - self.last_seen)
+
+    def warm_start(self, stamp_ns: int | None, max_gap_s: float):
+        """The parameters (types.BodyParams) to warm-start the fit of the frame stamped
+        `stamp_ns` from: the last fit's, posed at the mean of the shape samples when there
+        are any; None without a fit, or when it is more than `max_gap_s` older (unstamped
+        frames: consecutive)."""
+        if self.fit is None:
+            return None
+        prev_stamp = self.fit_stamp
+        gap_ok = (stamp_ns is None or prev_stamp is None or
+                  0 <= (stamp_ns - prev_stamp) * 1e-9 <= max_gap_s)
+        if not gap_ok:
+            return None
+        init = self.fit.params
+        shapes = self.shapes
+        if shapes is not None and shapes[1]:  # pose at the mean shape
+            mean = shapes[0] / shapes[1]
+            init = replace(init, shape=mean.astype(np.asarray(init.shape).dtype))
+        return init
+
+    def keep_fit(self, fit, t: float, stamp_ns: int | None, tracked: bool) -> None:
+        """Keep this frame's fit (time `t`, stamp `stamp_ns`) for the next frame's warm
+        start. A cold fit (`tracked` False: a new track, or a lost one) starts the shape
+        samples afresh: the track keeps the cold fit's shape until sampled."""
+        self.fit, self.fit_time, self.fit_stamp = fit, t, stamp_ns
+        if not tracked:
+            self.shapes = [np.zeros(len(fit.params.shape)), 0, 0]
+
+    def shape_sample_due(self, every: int) -> bool:
+        """Count a tracked frame; True when it is the `every`-th since the last shape
+        sample (never with `every` <= 0 or no samples kept)."""
+        if every <= 0 or self.shapes is None:
+            return False
+        self.shapes[2] += 1
+        return not self.shapes[2] % every
+
+    def add_shape_sample(self, shape) -> None:
+        """Add a fitted shape to the samples of the track's mean shape."""
+        self.shapes[0] = self.shapes[0] + np.asarray(shape, np.float64)
+        self.shapes[1] += 1
 
 
 class Tracker:
@@ -89,10 +133,12 @@ class Tracker:
         """Drop every track (IDs are still never reused)."""
         self.tracks = []
 
-    def forget_fits(self) -> None:
-        """Keep the IDs but warm-start no track on the next frame."""
+    def forget_fits(self, keep: set | None = None) -> None:
+        """Keep the IDs but warm-start no track on the next frame, except those whose
+        `id()` is in `keep` (the tracks seen in this frame)."""
         for t in self.tracks:
-            t.fit = None
+            if not keep or id(t) not in keep:
+                t.fit = None
 
     def expire(self, t: float) -> None:
         """Drop the tracks unseen for longer than the timeout at time `t` (and all of

@@ -181,10 +181,10 @@ def test_model_segmentation_leaves_the_floor_under_the_feet(rec, monkeypatch):
     fitted mesh) does not take the floor a foot stands on: no such pixel lies within
     PLANE_M of the frame's floor plane, whereas without the rule some do, and they are
     background in the truth."""
-    import smpl_depth_ros.pipeline as pipeline
+    from smpl_depth_ros import refine, segmentation
     from smpl_depth_ros.net.preprocess import find_persons
 
-    m = pipeline.PLANE_M
+    m = segmentation.PLANE_M
 
     def floor_pixels(f):
         rec.reset()
@@ -198,7 +198,8 @@ def test_model_segmentation_leaves_the_floor_under_the_feet(rec, monkeypatch):
         return on.sum(), (f['labels'][rr[on], cc[on]] == 0).mean() if on.any() else 1.0
     frames = [_frame(rec, seed) for seed in (3, 9, 10)]
     assert all(floor_pixels(f)[0] == 0 for f in frames)
-    monkeypatch.setattr(pipeline, 'PLANE_M', 0.0)  # the rule off
+    monkeypatch.setattr(segmentation, 'PLANE_M', 0.0)  # the rule off
+    monkeypatch.setattr(refine, 'PLANE_M', 0.0)
     without = [floor_pixels(f) for f in frames]
     on = [n for n, _ in without]
     assert sum(on) > 20, without
@@ -210,8 +211,8 @@ def test_model_segmentation_beats_the_networks_labels(rec, monkeypatch):
     agree with the truth better than the network's own (kept in network_labels); the
     sub-grid shortcut for large windows gives the exact labels up to a few pixels;
     'network' publishes the network's labels as they are."""
-    import smpl_depth_ros.pipeline as pipeline
     from smpl_depth_ros import evaluation as ev
+    from smpl_depth_ros import segmentation
     conf_model, conf_net = np.zeros((15, 15)), np.zeros((15, 15))
     frames = [_frame(rec, seed) for seed in (3, 9, 10)]
     for f in frames:
@@ -226,10 +227,10 @@ def test_model_segmentation_beats_the_networks_labels(rec, monkeypatch):
     assert ev.miou(conf_model) > ev.miou(conf_net) + 0.01, (ev.miou(conf_model),
                                                             ev.miou(conf_net))
     f = frames[0]
-    monkeypatch.setattr(pipeline, 'MODEL_LABEL_POINTS', 1000)  # a sub-grid of 3 to 5 px
+    monkeypatch.setattr(segmentation, 'MODEL_LABEL_POINTS', 1000)  # a sub-grid of 3 to 5 px
     rec.reset()
     sub = rec.process(f['depth'], f['K']).labels
-    monkeypatch.setattr(pipeline, 'MODEL_LABEL_POINTS', 10 ** 9)  # every pixel on its own
+    monkeypatch.setattr(segmentation, 'MODEL_LABEL_POINTS', 10 ** 9)  # every pixel on its own
     rec.reset()
     exact = rec.process(f['depth'], f['K']).labels
     body = (exact > 0) | (sub > 0)
@@ -267,8 +268,8 @@ def test_candidates_are_scored_on_their_own_blob_not_their_crop():
     assert body_score(crop, valid, half, (H, W)) < 0.75 * 3.0
 
 
-def test_icp_refit_takes_the_body_pixels_the_network_left_out(rec, monkeypatch):
-    """_near_surface_pixels: with the true mesh as the fit and half the person's pixels
+def test_icp_refit_takes_the_body_pixels_the_network_left_out(rec):
+    """near_surface_pixels: with the true mesh as the fit and half the person's pixels
     (and a whole arm) left out as if the network had missed them, it returns body pixels
     the network did not have, nearly all of the missed ones within the margin of a vertex,
     each with its nearest vertex facing the camera (any vertex with fit.icp_front_cos 1:
@@ -277,6 +278,7 @@ def test_icp_refit_takes_the_body_pixels_the_network_left_out(rec, monkeypatch):
     from scipy.spatial import cKDTree
 
     from smpl_depth_ros.net.preprocess import find_persons, pixel_points
+    from smpl_depth_ros.refine import facing_camera, near_surface_pixels
     f = _frame(rec, 9)
     d, K, V, lab = f['depth'], f['K'], f['vertices'], f['labels']
     crop = find_persons(d, K, 0.5, 6.0, 400, 3)[0]
@@ -284,14 +286,19 @@ def test_icp_refit_takes_the_body_pixels_the_network_left_out(rec, monkeypatch):
     rr, cc = np.nonzero((lab > 0) & (d > 0))
     keep = (np.arange(len(rr)) % 2 == 0) & ~np.isin(lab[rr, cc], (5, 7))  # arm, hand
     r, c = rr[keep], cc[keep]
-    pts, vids = rec._near_surface_pixels(d, K, V, r, c, crop)
+    fc = rec.config.fit
+
+    def left_out(cos_max=fc.icp_front_cos, margin=fc.icp_margin_m):
+        return near_surface_pixels(d, K, V, r, c, crop, rec.surface,
+                                   facing_camera(V, rec.faces, cos_max), margin)
+    pts, vids = left_out()
     assert len(pts) and pts.dtype == np.float32 and vids.shape == (len(pts),)
     u = np.rint(pts[:, 0] * K[0, 0] / pts[:, 2] + K[0, 2]).astype(int)
     v = np.rint(pts[:, 1] * K[1, 1] / pts[:, 2] + K[1, 2]).astype(int)
     got = set(zip(v.tolist(), u.tolist()))
     assert not got & set(zip(r.tolist(), c.tolist()))
     assert (lab[v, u] > 0).mean() > 0.95
-    valid = rec._valid_vertex_ids
+    valid = rec.surface.valid_vertex_ids
     # Nearly every missed body pixel within the margin of a vertex (the vertices are ~3 cm
     # apart, and the depth noise at 4.5 m is a few cm: about half of them).
     near = cKDTree(V[valid]).query(pixel_points(rr[~keep], cc[~keep], d[rr[~keep], cc[~keep]],
@@ -300,27 +307,26 @@ def test_icp_refit_takes_the_body_pixels_the_network_left_out(rec, monkeypatch):
     assert len(missed) > 500 and len(got & missed) > 0.9 * len(missed)
     # Each takes its nearest vertex among those facing the camera (fit.icp_front_cos):
     # with any vertex allowed, some take one on the far side of a limb or silhouette.
-    front = rec._facing_camera(V)
+    front = facing_camera(V, rec.faces, fc.icp_front_cos)
     assert front is not None and not front[valid].all()
     fv = valid[front[valid]]
     assert np.array_equal(vids, fv[cKDTree(V[fv]).query(pts)[1]])
     for pl in crop.planes:
         assert (np.abs(pts @ pl[:3] - pl[3]) > 0.02).all()
-    monkeypatch.setattr(rec, 'config', rec.config.with_overrides(icp_front_cos=1.0))
-    pts1, vids1 = rec._near_surface_pixels(d, K, V, r, c, crop)
+    pts1, vids1 = left_out(cos_max=1.0)
     assert np.array_equal(vids1, valid[cKDTree(V[valid]).query(pts1)[1]])
     assert (~front[vids1]).mean() > 0.02
-    monkeypatch.setattr(rec, 'config', rec.config.with_overrides(icp_margin_m=0.0))
-    assert len(rec._near_surface_pixels(d, K, V, r, c, crop)[0]) == 0
+    assert len(left_out(cos_max=1.0, margin=0.0)[0]) == 0
 
 
-def test_icp_step_matches_pixels_to_vertices_facing_the_camera(rec, monkeypatch):
-    """_refine_correspondences on the true mesh, from the true vertices: without
+def test_icp_step_matches_pixels_to_vertices_facing_the_camera(rec):
+    """refine_correspondences on the true mesh, from the true vertices: without
     fit.icp_front_cos (1 = any vertex) some pixels of the front surface snap to a nearer
     vertex on the far side of a limb or silhouette; with it (the default) none do, and the
     matches lie closer to the truth on the template."""
     from smpl_depth_ros.fit.rig import vertex_normals
     from smpl_depth_ros.net.preprocess import pixel_points
+    from smpl_depth_ros.refine import facing_camera, refine_correspondences
     f = _frame(rec, 9)
     d, K, V, vid = f['depth'], f['K'], f['vertices'], f['vertex_ids']
     rr, cc = np.nonzero((vid >= 0) & (d > 0))
@@ -333,8 +339,7 @@ def test_icp_step_matches_pixels_to_vertices_facing_the_camera(rec, monkeypatch)
     canon = rec.body.canonical_vertices()
     err = {}
     for c in (cos_max, 1.0):
-        monkeypatch.setattr(rec, 'config', rec.config.with_overrides(icp_front_cos=c))
-        out = rec._refine_correspondences(pts, true, V)
+        out = refine_correspondences(pts, true, V, rec.surface, facing_camera(V, rec.faces, c))
         err[c] = np.linalg.norm(canon[out] - canon[true], axis=1).mean()
         away = (~facing[out]).mean()
         assert (away == 0.0) if c < 1.0 else (away > 0.02), (c, away)

@@ -54,7 +54,10 @@ class CorrespondenceNet:
                              f'has {body.num_vertices}')
         self.meta = meta
         self.path = path
-        self.net = build_network(meta.get('kind', 'double'))
+        # The layers' random initialisation, replaced by the weights, leaves torch's
+        # global random stream as it was (building a Reconstructor draws no numbers).
+        with torch.random.fork_rng(devices=[]):
+            self.net = build_network(meta.get('kind', 'double'))
         self.net.load_state_dict({k: v.float() for k, v in ck['state_dict'].items()})
         self.net.eval().to(device)
         self.device = torch.device(device)
