@@ -66,6 +66,7 @@ from smpl_depth_ros.config import FitConfig, PipelineConfig
 from smpl_depth_ros.ros.outputs import OUTPUT_PARAMS, TOPICS, FrameOutputs
 from smpl_depth_ros.ros.outputs import OutputOptions as MessageOptions
 from smpl_depth_ros.sensor_noise import check_sensor
+from smpl_depth_ros.stamps import stamp_to_ns
 from smpl_depth_ros.types import InputError
 
 PROG = 'process_bag'
@@ -979,10 +980,6 @@ def _peak_rss_mb(who=resource.RUSAGE_SELF) -> float:
     return round(kb / (1024 * 1024 if sys.platform == 'darwin' else 1024), 1)
 
 
-def _stamp(header) -> int:
-    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
-
-
 def _prepare_output_dir(out: Path, inputs: Path, overwrite: bool, export_meshes: bool = False,
                         log=None) -> None:
     """Check OUT and, with `overwrite`, remove the products this run writes (a symlink
@@ -1317,7 +1314,7 @@ class _BagRun:
         self.resets.append(False)
         try:
             msg = self.src.typestore.deserialize_cdr(raw, topic.msgtype)
-            stamp, frame_id = _stamp(msg.header), str(msg.header.frame_id)
+            stamp, frame_id = stamp_to_ns(msg.header.stamp), str(msg.header.frame_id)
         except Exception as e:  # noqa: BLE001
             self._skip(index, 'deserialize', f'cannot decode the Image message: {e}', -1, '')
             return

@@ -41,6 +41,7 @@ from smpl_depth_ros.ros import oak  # noqa: E402
 from smpl_depth_ros.ros.oak_camera_node import (OakCameraNode,  # noqa: E402
                                                 make_reconstruct_oak)
 from smpl_depth_ros.ros.runner import shutdown_executor  # noqa: E402
+from smpl_depth_ros.stamps import stamp_to_ns  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 PARAMS_FILE = REPO / 'config' / 'oak_camera.yaml'
@@ -148,7 +149,7 @@ def test_calibration_to_camera_info_at_output_resolution():
     K_back, D_back, size = A.camera_info_to_K(info)
     np.testing.assert_allclose(K_back, K_OAK)
     assert size == (640, 400) and not D_back.any()
-    assert info.header.frame_id == FRAME and A.stamp_to_ns(info.header.stamp) == 5_000_000_123
+    assert info.header.frame_id == FRAME and stamp_to_ns(info.header.stamp) == 5_000_000_123
 
     with pytest.raises(oak.CalibrationError, match='CAM_A'):
         oak.intrinsics(calib, oak.depth_socket(oak.OakConfig(align_to_color=True)),
@@ -570,7 +571,7 @@ def test_node_publishes_depth_and_camera_info(rclpy_context):
         info = next(m for m in col.msgs('/oak/depth/camera_info') if m.header == img.header)
         assert (img.encoding, img.width, img.height, img.step) == ('16UC1', 640, 400, 1280)
         assert img.header.frame_id == FRAME
-        stamp = A.stamp_to_ns(img.header.stamp)   # the capture time, in ROS time
+        stamp = stamp_to_ns(img.header.stamp)   # the capture time, in ROS time
         assert ros_before - 5_000_000 <= stamp <= ros_after + 5_000_000
         got = A.image_to_array(img)
         np.testing.assert_array_equal(got, np.where((mm >= 300) & (mm <= 6000), mm, 0))
@@ -691,10 +692,10 @@ def test_published_messages_feed_the_reconstructor(rclpy_context, core, person):
     try:
         assert wait_for(lambda: cam._pub_depth.get_subscription_count() >= 2, 10.0)
         _send_until(dev, person['mm'], lambda: col.msgs('/oak/reconstructor/mesh'), 60.0)
-        published = {A.stamp_to_ns(m.header.stamp) for m in col.msgs('/oak/depth/image_raw')}
+        published = {stamp_to_ns(m.header.stamp) for m in col.msgs('/oak/depth/image_raw')}
         mesh = col.msgs('/oak/reconstructor/mesh')[0]
         assert mesh.header.frame_id == FRAME
-        assert A.stamp_to_ns(mesh.header.stamp) in published   # the camera's stamp, copied
+        assert stamp_to_ns(mesh.header.stamp) in published   # the camera's stamp, copied
         err = np.linalg.norm(_mesh_vertices(mesh).mean(0) - person['vertices'].mean(0))
         assert err < 0.1, err                       # the fitted body is where the person is
         assert wait_for(lambda: col.msgs('/oak/reconstructor/smpl_params'), 5.0)
@@ -723,8 +724,8 @@ def test_reconstruct_oak_hands_over_the_same_messages(rclpy_context, core, perso
         assert mesh.header.frame_id == FRAME
         # No serialisation: the reconstructor got the very objects the camera published.
         assert handed and all(a is b for a, b in zip(handed, published))
-        assert A.stamp_to_ns(mesh.header.stamp) in {A.stamp_to_ns(m.header.stamp)
-                                                    for m in handed}
+        assert stamp_to_ns(mesh.header.stamp) in {stamp_to_ns(m.header.stamp)
+                                                  for m in handed}
         err = np.linalg.norm(_mesh_vertices(mesh).mean(0) - person['vertices'].mean(0))
         assert err < 0.1, err
         # The camera told the reconstructor which sensor it is.
