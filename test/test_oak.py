@@ -3,8 +3,8 @@
 * the adapter (`ros.oak`, no rclpy inside): host `dai.ImgFrame`s -> DepthFrame, a host
   `dai.CalibrationHandler` -> K at the published size, depthai timestamps -> ROS time, the
   stereo configuration on a real `StereoDepthConfig`, the pipeline wiring against the real
-  class APIs, and the reconnecting driver over host `dai.MessageQueue`s (closing a queue is
-  what an unplugged device looks like to the reader);
+  class APIs, and the reconnecting driver (`ros.oak_device`) over host `dai.MessageQueue`s
+  (closing a queue is what an unplugged device looks like to the reader);
 * the node in-process (rclpy, localhost-only DDS from conftest.py) fed from a host queue:
   published image + camera_info, stamps, unplug -> error -> reconnect -> publishing again;
 * a synthetic depth frame (`synth.dataset.make_frame`, oak_d camera) made into a host
@@ -38,6 +38,7 @@ from visualization_msgs.msg import Marker  # noqa: E402
 
 from smpl_depth_ros.ros import adapters as A  # noqa: E402
 from smpl_depth_ros.ros import oak  # noqa: E402
+from smpl_depth_ros.ros import oak_device as oakdev  # noqa: E402
 from smpl_depth_ros.ros.oak_camera_node import (OakCameraNode,  # noqa: E402
                                                 make_reconstruct_oak)
 from smpl_depth_ros.ros.runner import shutdown_executor  # noqa: E402
@@ -334,7 +335,7 @@ def test_validate_config():
 # -- the reconnecting driver ----------------------------------------------------------------
 def host_connection(device_id: str = 'HOSTDEV', maxsize: int = 4):
     q = dai.MessageQueue('depth', maxsize, False)
-    return oak.QueueConnection(q, host_calibration(), device_id), q
+    return oakdev.QueueConnection(q, host_calibration(), device_id), q
 
 
 def test_driver_survives_unplug_and_backs_off():
@@ -343,7 +344,7 @@ def test_driver_survives_unplug_and_backs_off():
     first, q1 = host_connection()
     second, q2 = host_connection()
     frames, events, opened = [], [], []
-    plan = [oak.DeviceNotFoundError('not back yet')] * 3 + [second]
+    plan = [oakdev.DeviceNotFoundError('not back yet')] * 3 + [second]
 
     def reopen(device_id):
         opened.append((device_id, time.monotonic()))
@@ -352,9 +353,9 @@ def test_driver_survives_unplug_and_backs_off():
             raise item
         return item
 
-    driver = oak.OakDriver(cfg, first, lambda f, s: frames.append((f.getSequenceNum(), s)),
-                           lambda kind, msg, info: events.append((kind, msg, info)),
-                           reopen=reopen)
+    driver = oakdev.OakDriver(cfg, first, lambda f, s: frames.append((f.getSequenceNum(), s)),
+                              lambda kind, msg, info: events.append((kind, msg, info)),
+                              reopen=reopen)
     driver.start()
     try:
         for i in range(3):
@@ -383,10 +384,10 @@ def test_driver_treats_silence_as_a_lost_device():
     cfg = oak.OakConfig(reconnect_backoff_s=0.05, frame_timeout_s=0.3)
     connection, q = host_connection()
     events = []
-    driver = oak.OakDriver(cfg, connection, lambda f, s: None,
-                           lambda kind, msg, info: events.append((kind, msg)),
-                           reopen=lambda dev: (_ for _ in ()).throw(
-                               oak.DeviceNotFoundError('gone')))
+    driver = oakdev.OakDriver(cfg, connection, lambda f, s: None,
+                              lambda kind, msg, info: events.append((kind, msg)),
+                              reopen=lambda dev: (_ for _ in ()).throw(
+                                  oakdev.DeviceNotFoundError('gone')))
     driver.start()
     try:
         q.send(oak.make_host_frame(np.ones((2, 2), np.uint16)))  # one frame, then nothing
@@ -399,11 +400,11 @@ def test_driver_treats_silence_as_a_lost_device():
 def test_find_device_names_what_it_looked_for():
     if devices_attached():
         pytest.skip('an OAK device is attached')
-    with pytest.raises(oak.DeviceNotFoundError) as e:
-        oak.find_device('', timeout_s=0.0)
+    with pytest.raises(oakdev.DeviceNotFoundError) as e:
+        oakdev.find_device('', timeout_s=0.0)
     assert 'any OAK device' in str(e.value) and '\n' not in str(e.value)
-    with pytest.raises(oak.DeviceNotFoundError) as e:
-        oak.find_device('18443010D116631200', timeout_s=0.0)
+    with pytest.raises(oakdev.DeviceNotFoundError) as e:
+        oakdev.find_device('18443010D116631200', timeout_s=0.0)
     assert "'18443010D116631200'" in str(e.value)
 
 
@@ -536,9 +537,9 @@ class HostDevice:
     def __call__(self, device_id: str, timeout_s: float):
         self.opens.append(device_id)
         if not self.plugged:
-            raise oak.DeviceNotFoundError(f"no OAK device found: looked for '{device_id}'")
+            raise oakdev.DeviceNotFoundError(f"no OAK device found: looked for '{device_id}'")
         self.queue = dai.MessageQueue('depth', 4, False)
-        return oak.QueueConnection(self.queue, self.calibration, 'HOSTDEV', 'host OAK HOSTDEV')
+        return oakdev.QueueConnection(self.queue, self.calibration, 'HOSTDEV', 'host OAK HOSTDEV')
 
     def unplug(self):
         self.plugged = False
@@ -757,7 +758,7 @@ def test_sensor_preset_follows_the_camera_and_its_settings():
 def oak_device():
     if not dai.Device.getAllAvailableDevices():
         pytest.skip('no OAK device attached')
-    connection = oak.open_connection(oak.OakConfig(), timeout_s=5.0)
+    connection = oakdev.open_connection(oak.OakConfig(), timeout_s=5.0)
     yield connection
     connection.close()
 
