@@ -8,9 +8,9 @@ Messages are rosbags dataclasses of the Jazzy typestore:
 * `sensor_msgs/msg/CameraInfo` with the same header: K, P = [K | 0], R = I,
   distortion_model 'plumb_bob' with D = 0 (synthetic images are undistorted).
 
-Image <-> bytes (`depth_to_bytes`, `bytes_to_depth`) is plain numpy: depth in metres is
-rounded to millimetres (16UC1) or cast to float32 (32FC1), viewed as bytes in the
-requested byte order; decoding honours `step` (row padding) and `is_bigendian`, and
+Image <-> bytes is `depth_codec`'s (`depth_to_bytes` with invalid pixels written as
+NaN in 32FC1, `bytes_to_depth`): depth in metres is rounded to millimetres (16UC1) or
+cast to float32 (32FC1); decoding honours `step` (row padding) and `is_bigendian`, and
 returns float32 metres with 0 for invalid (0, NaN, inf, negative).
 """
 from __future__ import annotations
@@ -20,10 +20,12 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
+from smpl_depth_ros.depth_codec import bytes_to_depth, check_encoding, depth_to_bytes
+from smpl_depth_ros.stamps import ns_to_stamp, stamp_to_ns
+
 DEPTH_TOPIC = '/camera/depth/image_raw'
 INFO_TOPIC = '/camera/depth/camera_info'
 FRAME_ID = 'camera_depth_optical_frame'
-ENCODINGS = {'16UC1': (np.dtype(np.uint16), 0.001), '32FC1': (np.dtype(np.float32), 1.0)}
 STORAGES = ('mcap', 'sqlite3')
 
 
@@ -33,58 +35,9 @@ def jazzy_typestore():
     return get_typestore(Stores.ROS2_JAZZY)
 
 
-def depth_to_bytes(depth: np.ndarray, encoding: str = '16UC1',
-                   bigendian: bool = False) -> tuple[np.ndarray, int]:
-    """(H, W) metres -> (row-packed uint8 buffer (H * step,), step in bytes).
-
-    16UC1: round(depth / 1 mm), clipped to 0..65535, invalid (0, NaN, inf, < 0) -> 0.
-    32FC1: float32 metres, invalid -> NaN.
-    """
-    if depth.ndim != 2:
-        raise ValueError(f'depth must be (H, W), got {depth.shape}')
-    if encoding not in ENCODINGS:
-        raise ValueError(f'encoding must be one of {sorted(ENCODINGS)}, got {encoding!r}')
-    dt, unit = ENCODINGS[encoding]
-    d = np.asarray(depth, np.float64)
-    valid = np.isfinite(d) & (d > 0)
-    if encoding == '16UC1':
-        pix = np.clip(np.rint(np.where(valid, d, 0.0) / unit), 0, 65535)
-    else:
-        pix = np.where(valid, d, np.nan)
-    pix = np.ascontiguousarray(pix, dtype=dt.newbyteorder('>' if bigendian else '<'))
-    return pix.view(np.uint8).reshape(-1), depth.shape[1] * dt.itemsize
-
-
-def bytes_to_depth(data, width: int, height: int, encoding: str, step: int | None = None,
-                   bigendian: bool = False) -> np.ndarray:
-    """Image bytes -> (H, W) float32 metres, 0 where invalid.
-
-    Args:
-        data: the message's data (bytes-like or uint8 array).
-        width, height: image size.
-        encoding: '16UC1' (millimetres) or '32FC1' (metres).
-        step: bytes per row (>= width * bytes per pixel); default packed rows.
-        bigendian: the message's is_bigendian.
-    """
-    if encoding not in ENCODINGS:
-        raise ValueError(f'unsupported depth encoding {encoding!r}; expected 16UC1 or 32FC1')
-    dt, unit = ENCODINGS[encoding]
-    step = width * dt.itemsize if step is None else int(step)
-    buf = np.frombuffer(data, np.uint8) if not isinstance(data, np.ndarray) else data
-    buf = np.ascontiguousarray(buf, np.uint8).reshape(-1)
-    if step < width * dt.itemsize or buf.size < step * (height - 1) + width * dt.itemsize:
-        raise ValueError(f'{width}x{height} {encoding} step {step}: inconsistent with '
-                         f'{buf.size} data bytes')
-    view = np.ndarray((height, width), dtype=dt.newbyteorder('>' if bigendian else '<'),
-                      buffer=buf, strides=(step, dt.itemsize))
-    depth = view.astype(np.float32) * np.float32(unit)
-    depth[~(np.isfinite(depth) & (depth > 0))] = 0.0
-    return depth
-
-
 def _header(typestore, stamp_ns: int, frame_id: str):
     T = typestore.types
-    sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
+    sec, nsec = ns_to_stamp(stamp_ns)
     return T['std_msgs/msg/Header'](stamp=T['builtin_interfaces/msg/Time'](sec=sec, nanosec=nsec),
                                     frame_id=frame_id)
 
@@ -93,7 +46,7 @@ def image_msg(depth: np.ndarray, stamp_ns: int, frame_id: str = FRAME_ID,
               encoding: str = '16UC1', typestore=None):
     """A rosbags sensor_msgs/msg/Image of (H, W) depth in metres."""
     typestore = typestore or jazzy_typestore()
-    data, step = depth_to_bytes(depth, encoding)
+    data, step = depth_to_bytes(depth, encoding, nan_invalid=True)
     return typestore.types['sensor_msgs/msg/Image'](
         header=_header(typestore, stamp_ns, frame_id), height=int(depth.shape[0]),
         width=int(depth.shape[1]), encoding=encoding, is_bigendian=0, step=step, data=data)
@@ -139,8 +92,7 @@ def write_depth_bag(path: str | Path, frames_iter: Iterable[tuple[int, np.ndarra
 
     if storage not in STORAGES:
         raise ValueError(f'storage must be one of {STORAGES}, got {storage!r}')
-    if encoding not in ENCODINGS:
-        raise ValueError(f'encoding must be one of {sorted(ENCODINGS)}, got {encoding!r}')
+    check_encoding(encoding)
     typestore = typestore or jazzy_typestore()
     plugin = StoragePlugin.MCAP if storage == 'mcap' else StoragePlugin.SQLITE3
     img_t, info_t = 'sensor_msgs/msg/Image', 'sensor_msgs/msg/CameraInfo'
@@ -165,10 +117,6 @@ def write_depth_bag(path: str | Path, frames_iter: Iterable[tuple[int, np.ndarra
     return n
 
 
-def _stamp_ns(header) -> int:
-    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
-
-
 def iter_depth_bag(path: str | Path, depth_topic: str = DEPTH_TOPIC,
                    info_topic: str | None = INFO_TOPIC
                    ) -> Iterator[tuple[int, np.ndarray, np.ndarray | None]]:
@@ -186,12 +134,12 @@ def iter_depth_bag(path: str | Path, depth_topic: str = DEPTH_TOPIC,
             conns = [c for c in reader.connections if c.topic == info_topic]
             for conn, _t, raw in reader.messages(connections=conns):
                 msg = reader.deserialize(raw, conn.msgtype)
-                infos[_stamp_ns(msg.header)] = np.asarray(msg.k, np.float64).reshape(3, 3)
+                infos[stamp_to_ns(msg.header.stamp)] = np.asarray(msg.k, np.float64).reshape(3, 3)
         info_stamps = np.array(sorted(infos), np.int64)
         conns = [c for c in reader.connections if c.topic == depth_topic]
         for conn, _t, raw in reader.messages(connections=conns):
             msg = reader.deserialize(raw, conn.msgtype)
-            stamp = _stamp_ns(msg.header)
+            stamp = stamp_to_ns(msg.header.stamp)
             i = np.searchsorted(info_stamps, stamp, side='right') - 1
             K = infos[int(info_stamps[i])] if i >= 0 else None
             depth = bytes_to_depth(msg.data, int(msg.width), int(msg.height), msg.encoding,

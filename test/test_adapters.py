@@ -14,6 +14,8 @@ import torch
 
 from smpl_depth_ros.body.parts import labels_to_rgb
 from smpl_depth_ros.ros import adapters as A
+from smpl_depth_ros.ros import body_msgs, markers
+from smpl_depth_ros.stamps import cdr_stamp_ns, stamp_to_ns
 from smpl_depth_ros.types import BodyParams, InputError
 
 rclpy_serialization = pytest.importorskip('rclpy.serialization')
@@ -64,7 +66,7 @@ def test_depth_round_trip(msgs, encoding, bigendian, pad):
              msgs)
     assert (m.encoding, m.width, m.height, m.step, bool(m.is_bigendian)) == \
         (encoding, d.shape[1], d.shape[0], step, bigendian)
-    assert A.stamp_to_ns(m.header.stamp) == 1_700_000_000_123_456_789
+    assert stamp_to_ns(m.header.stamp) == 1_700_000_000_123_456_789
     assert m.header.frame_id == 'cam'
     out = A.image_to_depth(m)
     assert out.dtype == np.float32 and out.shape == d.shape
@@ -206,7 +208,7 @@ def test_labels_to_image_msgs(msgs):
     assert (rgb.encoding, rgb.width, rgb.height, rgb.step) == ('rgb8', 33, 21, 99)
     assert (ids.encoding, ids.width, ids.height, ids.step) == ('mono8', 33, 21, 33)
     for m in (rgb, ids):
-        assert A.stamp_to_ns(m.header.stamp) == 42 and m.header.frame_id == 'cam'
+        assert stamp_to_ns(m.header.stamp) == 42 and m.header.frame_id == 'cam'
     np.testing.assert_array_equal(A.image_to_array(rgb), labels_to_rgb(labels))
     np.testing.assert_array_equal(A.image_to_array(ids), labels)
 
@@ -229,11 +231,11 @@ def test_mesh_marker(msgs, anny, anny_posed):
     v, _ = anny_posed
     faces = anny.faces_numpy()
     hdr = A.make_header(stamp_ns=7, frame_id='cam', msgs=msgs)
-    m = wire(A.mesh_marker(v, faces, hdr, ns='mesh', id=3, lifetime_s=1.25, msgs=msgs), msgs)
+    m = wire(markers.mesh_marker(v, faces, hdr, ns='mesh', id=3, lifetime_s=1.25, msgs=msgs), msgs)
     M = msgs.cls('visualization_msgs/msg/Marker')
     assert m.type == M.TRIANGLE_LIST and m.action == M.ADD and (m.ns, m.id) == ('mesh', 3)
     assert (m.lifetime.sec, m.lifetime.nanosec) == (1, 250_000_000)
-    assert A.stamp_to_ns(m.header.stamp) == 7 and m.header.frame_id == 'cam'
+    assert stamp_to_ns(m.header.stamp) == 7 and m.header.frame_id == 'cam'
     assert m.pose.orientation.w == 1.0 and m.color.a > 0
     pts = np.array([[p.x, p.y, p.z] for p in m.points])
     assert len(pts) == 3 * len(faces)
@@ -244,22 +246,22 @@ def test_decimation(anny, anny_posed):
     v, _ = anny_posed
     faces = anny.faces_numpy()
     for target in (2000, 1200, 500, 100):
-        d = A.decimate_faces(v, faces, target)
+        d = markers.decimate_faces(v, faces, target)
         assert 0.5 * target < len(d) <= target
         assert d.min() >= 0 and d.max() < len(v)
         assert np.all((d[:, 0] != d[:, 1]) & (d[:, 1] != d[:, 2]) & (d[:, 0] != d[:, 2]))
-        np.testing.assert_array_equal(d, A.decimate_faces(v, faces, target))  # deterministic
-    assert A.decimate_faces(v, faces, len(faces)) is not None
-    np.testing.assert_array_equal(A.decimate_faces(v, faces, 10 ** 6), faces)
-    m = A.mesh_marker(v, faces, None, decimate_faces=1000)
-    assert len(m.points) == 3 * len(A.decimate_faces(v, faces, 1000))
+        np.testing.assert_array_equal(d, markers.decimate_faces(v, faces, target))  # deterministic
+    assert markers.decimate_faces(v, faces, len(faces)) is not None
+    np.testing.assert_array_equal(markers.decimate_faces(v, faces, 10 ** 6), faces)
+    m = markers.mesh_marker(v, faces, None, decimate_faces=1000)
+    assert len(m.points) == 3 * len(markers.decimate_faces(v, faces, 1000))
 
 
 def test_skeleton_markers(msgs, anny, anny_posed):
     _, j = anny_posed
     parents = anny.joint_parents.numpy()
     hdr = A.make_header(stamp_ns=9, frame_id='cam', msgs=msgs)
-    arr = wire(A.skeleton_markers(j, parents, hdr, msgs=msgs), msgs)
+    arr = wire(markers.skeleton_markers(j, parents, hdr, msgs=msgs), msgs)
     M = msgs.cls('visualization_msgs/msg/Marker')
     spheres = [m for m in arr.markers if m.type == M.SPHERE_LIST]
     lines = [m for m in arr.markers if m.type == M.LINE_LIST]
@@ -285,8 +287,8 @@ def _random_params(body, seed=0) -> BodyParams:
 def _check_params_round_trip(body, msgs):
     p = _random_params(body)
     hdr = A.make_header(stamp_ns=11, frame_id='cam', msgs=msgs)
-    m = wire(A.params_to_joint_state(p, body, hdr, msgs), msgs)
-    assert A.stamp_to_ns(m.header.stamp) == 11 and m.header.frame_id == 'cam'
+    m = wire(body_msgs.params_to_joint_state(p, body, hdr, msgs), msgs)
+    assert stamp_to_ns(m.header.stamp) == 11 and m.header.frame_id == 'cam'
     names = list(m.name)
     assert names[:6] == ['transl.x', 'transl.y', 'transl.z',
                          'global_orient.rx', 'global_orient.ry', 'global_orient.rz']
@@ -294,7 +296,7 @@ def _check_params_round_trip(body, msgs):
     assert names[-body.num_shape:] == [f'shape.{s}' for s in body.shape_names]
     assert len(m.position) == len(names) == 6 + 3 * body.num_pose_joints + body.num_shape
     assert len(m.velocity) == 0 and len(m.effort) == 0
-    d = A.joint_state_to_params(m)
+    d = body_msgs.joint_state_to_params(m)
     assert d['joint_names'] == tuple(body.joint_names[1:])
     assert d['shape_names'] == tuple(body.shape_names)
     for k in ('pose', 'shape', 'global_orient', 'transl'):
@@ -331,25 +333,25 @@ def test_joint_state_accepts_person_result(anny):
                           joints=np.zeros((len(anny.joint_names), 3), np.float32),
                           bbox=(0, 0, 1, 1), mask=np.zeros((2, 2), bool), residual_m=0.01,
                           num_points=10)
-    d = A.joint_state_to_params(A.params_to_joint_state(person, anny))
+    d = body_msgs.joint_state_to_params(body_msgs.params_to_joint_state(person, anny))
     np.testing.assert_array_equal(d['pose'], p.pose)
 
 
 def test_joint_state_decoder_errors(msgs, anny):
-    m = A.params_to_joint_state(_random_params(anny), anny, None, msgs)
+    m = body_msgs.params_to_joint_state(_random_params(anny), anny, None, msgs)
     bad = msgs.new('sensor_msgs/msg/JointState', name=list(m.name),
                    position=msgs.seq(np.asarray(m.position)[:-1], np.float64))
     with pytest.raises(ValueError, match='positions'):
-        A.joint_state_to_params(bad)
+        body_msgs.joint_state_to_params(bad)
     names = [n for n in m.name if n != 'left_knee.ry']
     pos = [x for n, x in zip(m.name, m.position) if n != 'left_knee.ry']
     bad = msgs.new('sensor_msgs/msg/JointState', name=names,
                    position=msgs.seq(pos, np.float64))
     with pytest.raises(ValueError, match='left_knee.ry'):
-        A.joint_state_to_params(bad)
+        body_msgs.joint_state_to_params(bad)
     with pytest.raises(ValueError, match='joints'):
-        A.params_to_joint_state(BodyParams(np.zeros((3, 3)), np.zeros(6), np.zeros(3),
-                                           np.zeros(3)), anny)
+        body_msgs.params_to_joint_state(BodyParams(np.zeros((3, 3)), np.zeros(6),
+                                                   np.zeros(3), np.zeros(3)), anny)
 
 
 # -- diagnostics and headers -----------------------------------------------------------
@@ -359,7 +361,7 @@ def test_diagnostics(msgs):
                                                                    'count': 3, 'ok': True,
                                                                    'latency_ms': 12.3456})],
                              msgs), msgs)
-    assert A.stamp_to_ns(arr.header.stamp) == 3_000_000_001
+    assert stamp_to_ns(arr.header.stamp) == 3_000_000_001
     (s,) = arr.status
     assert A.diagnostic_level(s) == A.WARN and s.name == 'node: input' and s.message == 'bad'
     assert A.diagnostic_values(s) == {'reason': 'encoding', 'count': '3', 'ok': 'true',
@@ -370,7 +372,7 @@ def test_headers_cross_systems():
     rb = A.make_header(stamp_ns=12_345_678_901, frame_id='cam', msgs=ROSBAGS)
     rc = A.make_header(rb)  # a rosbags header into an rclpy message
     assert type(rc).__module__.startswith('std_msgs')
-    assert A.stamp_to_ns(rc.stamp) == 12_345_678_901 and rc.frame_id == 'cam'
+    assert stamp_to_ns(rc.stamp) == 12_345_678_901 and rc.frame_id == 'cam'
     m = A.depth_to_image_msg(np.ones((2, 2)), rb)  # rclpy image, rosbags header
     assert m.header.frame_id == 'cam'
     with pytest.raises(TypeError):
@@ -382,9 +384,9 @@ def test_headers_cross_systems():
 def test_marker_cdr_equals_full_serialisation(n, kind):
     f = A.rosbags_factory() if kind == 'rosbags' else A.as_factory(None)
     xyz = np.random.default_rng(n).normal(size=(n, 3))
-    m = A.mesh_marker(np.zeros((0, 3)), np.zeros((0, 3), np.int64), msgs=f,
-                      header=A.make_header(None, f, stamp_ns=123456789012, frame_id='cam'))
-    fast = A.marker_cdr(m, xyz, f)
+    m = markers.mesh_marker(np.zeros((0, 3)), np.zeros((0, 3), np.int64), msgs=f,
+                            header=A.make_header(None, f, stamp_ns=123456789012, frame_id='cam'))
+    fast = markers.marker_cdr(m, xyz, f)
     m.points = f.points(xyz)
     full = f.serialize(m, 'visualization_msgs/msg/Marker')
     if kind == 'rosbags':
@@ -401,13 +403,14 @@ def test_marker_cdr_equals_full_serialisation(n, kind):
 def test_cdr_stamp_ns_reads_the_header_of_serialized_messages(msgs, anny, anny_posed):
     v, _ = anny_posed
     hdr = A.make_header(stamp_ns=1_700_000_123_000_000_042, frame_id='cam', msgs=msgs)
-    for m, t in ((A.mesh_marker(v, anny.faces_numpy(), hdr, ns='mesh', id=0, msgs=msgs),
+    for m, t in ((markers.mesh_marker(v, anny.faces_numpy(), hdr, ns='mesh', id=0,
+                                      msgs=msgs),
                   'visualization_msgs/msg/Marker'),
                  (A.depth_to_image_msg(np.ones((4, 5), np.float32), header=hdr, msgs=msgs),
                   'sensor_msgs/msg/Image')):
-        assert A.cdr_stamp_ns(msgs.serialize(m, t)) == 1_700_000_123_000_000_042
+        assert cdr_stamp_ns(msgs.serialize(m, t)) == 1_700_000_123_000_000_042
     with pytest.raises(ValueError):
-        A.cdr_stamp_ns(b'\x00')
+        cdr_stamp_ns(b'\x00')
 
 
 @pytest.mark.parametrize('kind', ['rosbags', 'rclpy'])
@@ -416,10 +419,10 @@ def test_marker_array_cdr_equals_full_serialisation(kind):
     rng = np.random.default_rng(0)
     blocks = [rng.normal(size=(n, 3)) for n in (5, 0, 301)]
     h = A.make_header(None, f, stamp_ns=5, frame_id='cam')
-    marks = [A.mesh_marker(np.zeros((0, 3)), np.zeros((0, 3), np.int64), h, id=i, msgs=f)
-             for i in range(3)] + A.delete_markers([('body_mesh', 9)], h, msgs=f)
+    marks = [markers.mesh_marker(np.zeros((0, 3)), np.zeros((0, 3), np.int64), h, id=i, msgs=f)
+             for i in range(3)] + markers.delete_markers([('body_mesh', 9)], h, msgs=f)
     arr = f.new('visualization_msgs/msg/MarkerArray', markers=marks)
-    fast = A.marker_array_cdr(arr, blocks, f)
+    fast = markers.marker_array_cdr(arr, blocks, f)
     for m, b in zip(arr.markers, blocks):
         m.points = f.points(b)
     full = f.serialize(arr, 'visualization_msgs/msg/MarkerArray')
@@ -447,8 +450,8 @@ def test_bodies_params_round_trip_with_ids_and_confidence(anny, kind):
                           transl=rng.normal(size=3).astype(np.float32)),
         track_id=tid, joint_confidence=rng.uniform(size=J).astype(np.float32))
         for tid in (3, 11)]
-    msg = wire(A.bodies_to_joint_state(persons, anny, msgs=f), f)
-    back = A.joint_state_to_bodies(msg)
+    msg = wire(body_msgs.bodies_to_joint_state(persons, anny, msgs=f), f)
+    back = body_msgs.joint_state_to_bodies(msg)
     assert sorted(back) == [3, 11]
     for p in persons:
         b = back[p.track_id]
@@ -456,10 +459,11 @@ def test_bodies_params_round_trip_with_ids_and_confidence(anny, kind):
         np.testing.assert_allclose(b['transl'], p.params.transl, atol=1e-6)
         np.testing.assert_allclose(b['joint_confidence'], p.joint_confidence, atol=1e-6)
         assert b['confidence_joint_names'] == tuple(anny.joint_names)
-    tracked = wire(A.tracked_ids_msg(persons, msgs=f), f)
+    tracked = wire(body_msgs.tracked_ids_msg(persons, msgs=f), f)
     assert list(tracked.name) == ['body_3', 'body_11']
     with pytest.raises(ValueError):
-        A.joint_state_to_bodies(wire(A.params_to_joint_state(persons[0], anny, msgs=f), f))
+        body_msgs.joint_state_to_bodies(
+            wire(body_msgs.params_to_joint_state(persons[0], anny, msgs=f), f))
 
 
 def test_body_transforms_rebuild_the_joint_positions(anny):
@@ -471,8 +475,8 @@ def test_body_transforms_rebuild_the_joint_positions(anny):
     R = Rotation.random(J, random_state=3).as_matrix()
     x = rng.normal(size=(J, 3))
     parents = anny.joint_parents.numpy()
-    tfs = A.body_transforms(4, R, x, parents, anny.joint_names, msgs=ROSBAGS,
-                            header=A.make_header(None, ROSBAGS, frame_id='cam'))
+    tfs = body_msgs.body_transforms(4, R, x, parents, anny.joint_names, msgs=ROSBAGS,
+                                    header=A.make_header(None, ROSBAGS, frame_id='cam'))
     by = {t.child_frame_id: t for t in tfs}
     names = ['body_4'] + [f'{n}_4' for n in anny.joint_names[1:]]
     world = {'cam': (np.eye(3), np.zeros(3))}

@@ -3,8 +3,8 @@
 * the adapter (`ros.oak`, no rclpy inside): host `dai.ImgFrame`s -> DepthFrame, a host
   `dai.CalibrationHandler` -> K at the published size, depthai timestamps -> ROS time, the
   stereo configuration on a real `StereoDepthConfig`, the pipeline wiring against the real
-  class APIs, and the reconnecting driver over host `dai.MessageQueue`s (closing a queue is
-  what an unplugged device looks like to the reader);
+  class APIs, and the reconnecting driver (`ros.oak_device`) over host `dai.MessageQueue`s
+  (closing a queue is what an unplugged device looks like to the reader);
 * the node in-process (rclpy, localhost-only DDS from conftest.py) fed from a host queue:
   published image + camera_info, stamps, unplug -> error -> reconnect -> publishing again;
 * a synthetic depth frame (`synth.dataset.make_frame`, oak_d camera) made into a host
@@ -38,9 +38,11 @@ from visualization_msgs.msg import Marker  # noqa: E402
 
 from smpl_depth_ros.ros import adapters as A  # noqa: E402
 from smpl_depth_ros.ros import oak  # noqa: E402
+from smpl_depth_ros.ros import oak_device as oakdev  # noqa: E402
 from smpl_depth_ros.ros.oak_camera_node import (OakCameraNode,  # noqa: E402
                                                 make_reconstruct_oak)
 from smpl_depth_ros.ros.runner import shutdown_executor  # noqa: E402
+from smpl_depth_ros.stamps import stamp_to_ns  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 PARAMS_FILE = REPO / 'config' / 'oak_camera.yaml'
@@ -148,7 +150,7 @@ def test_calibration_to_camera_info_at_output_resolution():
     K_back, D_back, size = A.camera_info_to_K(info)
     np.testing.assert_allclose(K_back, K_OAK)
     assert size == (640, 400) and not D_back.any()
-    assert info.header.frame_id == FRAME and A.stamp_to_ns(info.header.stamp) == 5_000_000_123
+    assert info.header.frame_id == FRAME and stamp_to_ns(info.header.stamp) == 5_000_000_123
 
     with pytest.raises(oak.CalibrationError, match='CAM_A'):
         oak.intrinsics(calib, oak.depth_socket(oak.OakConfig(align_to_color=True)),
@@ -333,7 +335,7 @@ def test_validate_config():
 # -- the reconnecting driver ----------------------------------------------------------------
 def host_connection(device_id: str = 'HOSTDEV', maxsize: int = 4):
     q = dai.MessageQueue('depth', maxsize, False)
-    return oak.QueueConnection(q, host_calibration(), device_id), q
+    return oakdev.QueueConnection(q, host_calibration(), device_id), q
 
 
 def test_driver_survives_unplug_and_backs_off():
@@ -342,7 +344,7 @@ def test_driver_survives_unplug_and_backs_off():
     first, q1 = host_connection()
     second, q2 = host_connection()
     frames, events, opened = [], [], []
-    plan = [oak.DeviceNotFoundError('not back yet')] * 3 + [second]
+    plan = [oakdev.DeviceNotFoundError('not back yet')] * 3 + [second]
 
     def reopen(device_id):
         opened.append((device_id, time.monotonic()))
@@ -351,9 +353,9 @@ def test_driver_survives_unplug_and_backs_off():
             raise item
         return item
 
-    driver = oak.OakDriver(cfg, first, lambda f, s: frames.append((f.getSequenceNum(), s)),
-                           lambda kind, msg, info: events.append((kind, msg, info)),
-                           reopen=reopen)
+    driver = oakdev.OakDriver(cfg, first, lambda f, s: frames.append((f.getSequenceNum(), s)),
+                              lambda kind, msg, info: events.append((kind, msg, info)),
+                              reopen=reopen)
     driver.start()
     try:
         for i in range(3):
@@ -382,10 +384,10 @@ def test_driver_treats_silence_as_a_lost_device():
     cfg = oak.OakConfig(reconnect_backoff_s=0.05, frame_timeout_s=0.3)
     connection, q = host_connection()
     events = []
-    driver = oak.OakDriver(cfg, connection, lambda f, s: None,
-                           lambda kind, msg, info: events.append((kind, msg)),
-                           reopen=lambda dev: (_ for _ in ()).throw(
-                               oak.DeviceNotFoundError('gone')))
+    driver = oakdev.OakDriver(cfg, connection, lambda f, s: None,
+                              lambda kind, msg, info: events.append((kind, msg)),
+                              reopen=lambda dev: (_ for _ in ()).throw(
+                                  oakdev.DeviceNotFoundError('gone')))
     driver.start()
     try:
         q.send(oak.make_host_frame(np.ones((2, 2), np.uint16)))  # one frame, then nothing
@@ -398,11 +400,11 @@ def test_driver_treats_silence_as_a_lost_device():
 def test_find_device_names_what_it_looked_for():
     if devices_attached():
         pytest.skip('an OAK device is attached')
-    with pytest.raises(oak.DeviceNotFoundError) as e:
-        oak.find_device('', timeout_s=0.0)
+    with pytest.raises(oakdev.DeviceNotFoundError) as e:
+        oakdev.find_device('', timeout_s=0.0)
     assert 'any OAK device' in str(e.value) and '\n' not in str(e.value)
-    with pytest.raises(oak.DeviceNotFoundError) as e:
-        oak.find_device('18443010D116631200', timeout_s=0.0)
+    with pytest.raises(oakdev.DeviceNotFoundError) as e:
+        oakdev.find_device('18443010D116631200', timeout_s=0.0)
     assert "'18443010D116631200'" in str(e.value)
 
 
@@ -535,9 +537,9 @@ class HostDevice:
     def __call__(self, device_id: str, timeout_s: float):
         self.opens.append(device_id)
         if not self.plugged:
-            raise oak.DeviceNotFoundError(f"no OAK device found: looked for '{device_id}'")
+            raise oakdev.DeviceNotFoundError(f"no OAK device found: looked for '{device_id}'")
         self.queue = dai.MessageQueue('depth', 4, False)
-        return oak.QueueConnection(self.queue, self.calibration, 'HOSTDEV', 'host OAK HOSTDEV')
+        return oakdev.QueueConnection(self.queue, self.calibration, 'HOSTDEV', 'host OAK HOSTDEV')
 
     def unplug(self):
         self.plugged = False
@@ -570,7 +572,7 @@ def test_node_publishes_depth_and_camera_info(rclpy_context):
         info = next(m for m in col.msgs('/oak/depth/camera_info') if m.header == img.header)
         assert (img.encoding, img.width, img.height, img.step) == ('16UC1', 640, 400, 1280)
         assert img.header.frame_id == FRAME
-        stamp = A.stamp_to_ns(img.header.stamp)   # the capture time, in ROS time
+        stamp = stamp_to_ns(img.header.stamp)   # the capture time, in ROS time
         assert ros_before - 5_000_000 <= stamp <= ros_after + 5_000_000
         got = A.image_to_array(img)
         np.testing.assert_array_equal(got, np.where((mm >= 300) & (mm <= 6000), mm, 0))
@@ -691,10 +693,10 @@ def test_published_messages_feed_the_reconstructor(rclpy_context, core, person):
     try:
         assert wait_for(lambda: cam._pub_depth.get_subscription_count() >= 2, 10.0)
         _send_until(dev, person['mm'], lambda: col.msgs('/oak/reconstructor/mesh'), 60.0)
-        published = {A.stamp_to_ns(m.header.stamp) for m in col.msgs('/oak/depth/image_raw')}
+        published = {stamp_to_ns(m.header.stamp) for m in col.msgs('/oak/depth/image_raw')}
         mesh = col.msgs('/oak/reconstructor/mesh')[0]
         assert mesh.header.frame_id == FRAME
-        assert A.stamp_to_ns(mesh.header.stamp) in published   # the camera's stamp, copied
+        assert stamp_to_ns(mesh.header.stamp) in published   # the camera's stamp, copied
         err = np.linalg.norm(_mesh_vertices(mesh).mean(0) - person['vertices'].mean(0))
         assert err < 0.1, err                       # the fitted body is where the person is
         assert wait_for(lambda: col.msgs('/oak/reconstructor/smpl_params'), 5.0)
@@ -723,8 +725,8 @@ def test_reconstruct_oak_hands_over_the_same_messages(rclpy_context, core, perso
         assert mesh.header.frame_id == FRAME
         # No serialisation: the reconstructor got the very objects the camera published.
         assert handed and all(a is b for a, b in zip(handed, published))
-        assert A.stamp_to_ns(mesh.header.stamp) in {A.stamp_to_ns(m.header.stamp)
-                                                    for m in handed}
+        assert stamp_to_ns(mesh.header.stamp) in {stamp_to_ns(m.header.stamp)
+                                                  for m in handed}
         err = np.linalg.norm(_mesh_vertices(mesh).mean(0) - person['vertices'].mean(0))
         assert err < 0.1, err
         # The camera told the reconstructor which sensor it is.
@@ -756,7 +758,7 @@ def test_sensor_preset_follows_the_camera_and_its_settings():
 def oak_device():
     if not dai.Device.getAllAvailableDevices():
         pytest.skip('no OAK device attached')
-    connection = oak.open_connection(oak.OakConfig(), timeout_s=5.0)
+    connection = oakdev.open_connection(oak.OakConfig(), timeout_s=5.0)
     yield connection
     connection.close()
 

@@ -95,7 +95,7 @@ def msg_header(msg):
 
 
 def header_stamp(msg) -> int:
-    from smpl_depth_ros.ros.adapters import stamp_to_ns
+    from smpl_depth_ros.stamps import stamp_to_ns
     return stamp_to_ns(msg_header(msg).stamp)
 
 
@@ -187,7 +187,7 @@ def test_round_trip_cli(seq, seq_msgs, cli_run):
     assert res['pose'].shape[0] == FRAMES and np.isfinite(res['pose']).all()
     assert np.isfinite(res['residual_m']).all() and np.isfinite(res['timings_ms']).all()
     # Parameters in the JointState equal results.npz; meshes equal the markers.
-    from smpl_depth_ros.ros.adapters import joint_state_to_params
+    from smpl_depth_ros.ros.body_msgs import joint_state_to_params
     errors = []
     for i, ((_, js), (_, marker)) in enumerate(zip(decoded['/reconstructor/smpl_params'],
                                                    decoded['/reconstructor/mesh'])):

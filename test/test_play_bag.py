@@ -32,7 +32,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import CameraInfo  # noqa: E402
 from visualization_msgs.msg import Marker  # noqa: E402
 
-from smpl_depth_ros.ros import adapters as A  # noqa: E402
+from smpl_depth_ros.stamps import stamp_to_ns  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 DEPTH, INFO = '/camera/depth/image_raw', '/camera/depth/camera_info'
@@ -102,7 +102,7 @@ class Recorder:
 
     def _on_mesh(self, msg: Marker):
         with self.lock:
-            self.meshes.setdefault(A.stamp_to_ns(msg.header.stamp), []).append(msg)
+            self.meshes.setdefault(stamp_to_ns(msg.header.stamp), []).append(msg)
 
     def count(self) -> int:
         with self.lock:
@@ -281,7 +281,7 @@ def test_live_node_matches_offline(rclpy_context, bag, tmp_path):
         conns = [c for c in r.connections if c.topic == '/reconstructor/mesh']
         for c, _, raw in r.messages(connections=conns):
             m = r.deserialize(raw, c.msgtype)
-            offline[A.stamp_to_ns(m.header.stamp)] = marker_points(m)
+            offline[stamp_to_ns(m.header.stamp)] = marker_points(m)
     assert sorted(offline) == sorted(live), (sorted(offline), sorted(live))
     diffs = []
     for stamp, (m,) in sorted(live.items()):

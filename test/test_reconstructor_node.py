@@ -39,7 +39,9 @@ from visualization_msgs.msg import Marker, MarkerArray  # noqa: E402
 
 from smpl_depth_ros.config import FitConfig, PipelineConfig  # noqa: E402
 from smpl_depth_ros.ros import adapters as A  # noqa: E402
+from smpl_depth_ros.ros import body_msgs, markers  # noqa: E402
 from smpl_depth_ros.ros.reconstructor_node import ReconstructorNode  # noqa: E402
+from smpl_depth_ros.stamps import stamp_to_ns  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 PARAMS_FILE = REPO / 'config' / 'reconstructor.yaml'
@@ -225,7 +227,7 @@ class Probe:
             'the node never subscribed to depth / camera_info'
 
     def with_stamp(self, name: str, stamp_ns: int) -> list:
-        return [m for m in self.msgs(name) if A.stamp_to_ns(_header(m).stamp) == stamp_ns]
+        return [m for m in self.msgs(name) if stamp_to_ns(_header(m).stamp) == stamp_ns]
 
     def problems(self) -> list[tuple[str, str]]:
         """(reason, message) of every input-problem diagnostics entry so far."""
@@ -343,7 +345,7 @@ def test_outputs_copy_header_and_match_model(harness, core, scene):
     # Most body pixels get a body-part label; the background mostly stays background.
     assert (labels[body_px] > 0).mean() > 0.7
     assert (labels[~body_px] == 0).mean() > 0.95
-    params = A.joint_state_to_params(tester.with_stamp('smpl_params', stamp)[0])
+    params = body_msgs.joint_state_to_params(tester.with_stamp('smpl_params', stamp)[0])
     assert params['joint_names'] == tuple(body.joint_names[1:])
     assert params['shape_names'] == tuple(body.shape_names)
     assert params['pose'].shape == (body.num_pose_joints, 3)
@@ -387,7 +389,7 @@ def test_two_people_keep_their_ids_and_a_person_leaving_is_deleted(harness, core
     assert all(sorted(x) == sorted(ids[0]) for x in ids[1:-1]), ids  # stable
     left = (set(ids[0]) - set(ids[-1])).pop()
     for g, names in zip(got, ids):
-        bodies = A.joint_state_to_bodies(g['bodies/params'])
+        bodies = body_msgs.joint_state_to_bodies(g['bodies/params'])
         assert sorted(f'body_{k}' for k in bodies) == sorted(names)
         for b in bodies.values():
             assert b['pose'].shape == (body.num_pose_joints, 3)
@@ -504,7 +506,7 @@ def test_burst_against_slow_worker(harness, core, scene):
     assert wait_for(idle, 30.0)
     time.sleep(0.3)
     with tester.lock:
-        got = [(t, A.stamp_to_ns(m.header.stamp)) for t, m in tester.got['mesh']]
+        got = [(t, stamp_to_ns(m.header.stamp)) for t, m in tester.got['mesh']]
     lat = np.array([t - sent[s] for t, s in got if s in sent])
     assert len(lat) >= 3, f'too few outputs: {len(lat)} for {i} frames'
     # Bounded latency: at most one frame waiting (the one being processed) plus its own
@@ -657,7 +659,7 @@ def test_runtime_parameter_validation(harness, core, scene):
     mesh = tester.with_stamp('mesh', stamp)[0]
     with torch.no_grad():
         rest = core.body(**core.body.zero_params(1)).vertices[0].cpu().numpy()
-    expected = A.decimate_faces(rest, faces, round(0.5 * len(faces)))
+    expected = markers.decimate_faces(rest, faces, round(0.5 * len(faces)))
     assert len(mesh.points) == 3 * len(expected) < 3 * len(faces)
     assert core.config.depth_max == pytest.approx(5.0)
     assert core.config.fit.iterations == 8
@@ -780,7 +782,7 @@ def test_subprocess_bag_frames_params_file_and_sigint(rclpy_context, real_core, 
             stamp = int(gt['stamps'][i])
             info_msg = deserialize_message(info[2], CameraInfo)
             depth_msg = deserialize_message(depth[2], Image)
-            assert A.stamp_to_ns(depth_msg.header.stamp) == stamp
+            assert stamp_to_ns(depth_msg.header.stamp) == stamp
             deadline = time.monotonic() + 60.0
             while not tester.with_stamp('mesh', stamp) and time.monotonic() < deadline:
                 tester.pub_info.publish(info_msg)
@@ -797,7 +799,7 @@ def test_subprocess_bag_frames_params_file_and_sigint(rclpy_context, real_core, 
             assert mesh.lifetime.sec == 2
             v = mesh_vertices(mesh, faces, body.num_vertices)
             errors.append(float(np.nanmean(np.linalg.norm(v - gt['vertices'][i], axis=1))))
-            p = A.joint_state_to_params(tester.with_stamp('smpl_params', stamp)[0])
+            p = body_msgs.joint_state_to_params(tester.with_stamp('smpl_params', stamp)[0])
             assert p['pose'].shape == (body.num_pose_joints, 3)
             assert p['shape'].shape == (body.num_shape,)
             assert p['joint_names'] == tuple(body.joint_names[1:])
@@ -969,10 +971,10 @@ def test_tf_frames_of_two_people_where_tf2_msgs_is_installed(harness, core, scen
             f['depth'], A.make_header(stamp_ns=stamp, frame_id=FRAME), '16UC1'))
         assert wait_for(lambda: tester.with_stamp('bodies/tracked', stamp), 30.0)
         tracked = tester.with_stamp('bodies/tracked', stamp)[0]
-        assert wait_for(lambda: any(A.stamp_to_ns(t.header.stamp) == stamp
+        assert wait_for(lambda: any(stamp_to_ns(t.header.stamp) == stamp
                                     for m in got for t in m.transforms), 5.0)
         roots = {t.child_frame_id: t for m in got for t in m.transforms
-                 if A.stamp_to_ns(t.header.stamp) == stamp and t.header.frame_id == FRAME}
+                 if stamp_to_ns(t.header.stamp) == stamp and t.header.frame_id == FRAME}
         assert set(roots) == {str(n) for n in tracked.name}
     pubs = [i for i in tester.node.get_publishers_info_by_topic('/tf')
             if i.node_name == node.get_name()]

@@ -6,7 +6,7 @@ import pytest
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
-from smpl_depth_ros import bagio
+from smpl_depth_ros import bagio, depth_codec
 from smpl_depth_ros.synth.camera import CAMERAS
 from smpl_depth_ros.tools import synth_bag
 
@@ -63,8 +63,8 @@ def test_round_trip(bags, storage):
         # 1/rate apart without drift: start + round(i * 1e9 / rate)
         np.testing.assert_array_equal(gt['stamps'] - gt['stamps'][0],
                                       [round(i * 1e9 / 30) for i in range(3)])
-        depths[enc] = np.stack([bagio.bytes_to_depth(m.data, m.width, m.height, m.encoding,
-                                                     m.step, m.is_bigendian)
+        depths[enc] = np.stack([depth_codec.bytes_to_depth(m.data, m.width, m.height,
+                                                           m.encoding, m.step, m.is_bigendian)
                                 for _, m, _ in imgs])
         # Ground truth lines up with the depth.
         assert gt['labels'].shape == gt['vertex_ids'].shape == (3, 120, 160)
@@ -132,16 +132,16 @@ def test_write_depth_bag_helper(tmp_path):
 
 def test_bytes_round_trip_padding_and_endianness():
     d = np.array([[0.0, 1.2346], [np.nan, 65.6]], np.float32)
-    data, step = bagio.depth_to_bytes(d, '16UC1', bigendian=True)
-    back = bagio.bytes_to_depth(data, 2, 2, '16UC1', step, bigendian=True)
+    data, step = depth_codec.depth_to_bytes(d, '16UC1', nan_invalid=True, bigendian=True)
+    back = depth_codec.bytes_to_depth(data, 2, 2, '16UC1', step, bigendian=True)
     np.testing.assert_allclose(back, [[0, 1.235], [0, 65.535]], atol=1e-6)
-    data, step = bagio.depth_to_bytes(d, '32FC1')
+    data, step = depth_codec.depth_to_bytes(d, '32FC1', nan_invalid=True)
     padded = np.zeros((2, step + 4), np.uint8)
     padded[:, :step] = data.reshape(2, step)
-    back = bagio.bytes_to_depth(padded.reshape(-1), 2, 2, '32FC1', step + 4)
+    back = depth_codec.bytes_to_depth(padded.reshape(-1), 2, 2, '32FC1', step + 4)
     np.testing.assert_array_equal(back, np.nan_to_num(d, nan=0.0))
     with pytest.raises(ValueError):
-        bagio.bytes_to_depth(data[:-1], 2, 2, '32FC1')
+        depth_codec.bytes_to_depth(data[:-1], 2, 2, '32FC1')
 
 
 def test_sensor_preset_bags(tmp_path, capsys):

@@ -23,6 +23,7 @@ from smpl_depth_ros.offline.errors import BagReadError, InterruptedBeforeStart, 
 from smpl_depth_ros.offline.params import NODE_OPTIONS
 from smpl_depth_ros.offline.workers import (OUTPUTS, Job, Outcome, OutputOptions,
                                             _InlineRunner, _PoolRunner)
+from smpl_depth_ros.stamps import stamp_to_ns
 from smpl_depth_ros.types import InputError
 
 PROG = 'process_bag'
@@ -77,10 +78,6 @@ class _Progress:
 def _peak_rss_mb(who=resource.RUSAGE_SELF) -> float:
     kb = resource.getrusage(who).ru_maxrss  # kilobytes on Linux, bytes on macOS
     return round(kb / (1024 * 1024 if sys.platform == 'darwin' else 1024), 1)
-
-
-def _stamp(header) -> int:
-    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
 
 
 def _prepare_output_dir(out: Path, inputs: Path, overwrite: bool, export_meshes: bool = False,
@@ -417,7 +414,7 @@ class _BagRun:
         self.resets.append(False)
         try:
             msg = self.src.typestore.deserialize_cdr(raw, topic.msgtype)
-            stamp, frame_id = _stamp(msg.header), str(msg.header.frame_id)
+            stamp, frame_id = stamp_to_ns(msg.header.stamp), str(msg.header.frame_id)
         except Exception as e:  # noqa: BLE001
             self._skip(index, 'deserialize', f'cannot decode the Image message: {e}', -1, '')
             return

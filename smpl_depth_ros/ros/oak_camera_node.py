@@ -44,7 +44,7 @@ from rcl_interfaces.msg import (FloatingPointRange, IntegerRange,  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 
 from smpl_depth_ros.ros import adapters as A  # noqa: E402
-from smpl_depth_ros.ros import oak  # noqa: E402
+from smpl_depth_ros.ros import oak, oak_device  # noqa: E402
 from smpl_depth_ros.ros.runner import ros_args, run_nodes  # noqa: E402
 
 NODE_NAME = 'oak_camera'
@@ -151,11 +151,12 @@ class OakCameraNode(Node):
 
     Args:
         connection_factory: ``(device_id, timeout_s) -> connection`` (default
-            `oak.open_connection` with this node's OakConfig); tests pass host-made connections.
+            `oak_device.open_connection` with this node's OakConfig); tests pass host-made
+            connections.
         **kwargs: passed to rclpy's Node (context, parameter_overrides, cli_args ...).
 
     Raises:
-        oak.DeviceNotFoundError: no device at start-up (and not `wait_for_device`).
+        oak_device.DeviceNotFoundError: no device at start-up (and not `wait_for_device`).
         ValueError: invalid parameters.
     """
 
@@ -191,7 +192,7 @@ class OakCameraNode(Node):
 
         cfg = self.cfg
         self._open = connection_factory or (
-            lambda device_id, timeout_s: oak.open_connection(cfg, device_id, timeout_s))
+            lambda device_id, timeout_s: oak_device.open_connection(cfg, device_id, timeout_s))
         connection = None
         if not cfg.wait_for_device:
             connection = self._open(cfg.device_id, cfg.connect_timeout_s)  # raises: no device
@@ -199,8 +200,8 @@ class OakCameraNode(Node):
         else:
             self.get_logger().info('waiting for ' + (f"OAK device '{cfg.device_id}'" if
                                                      cfg.device_id else 'an OAK device'))
-        self._driver = oak.OakDriver(cfg, connection, self._on_frame, self._on_event,
-                                     reopen=lambda dev: self._open(dev, 0.0))
+        self._driver = oak_device.OakDriver(cfg, connection, self._on_frame, self._on_event,
+                                            reopen=lambda dev: self._open(dev, 0.0))
         self._driver.start()
 
     # -- public --------------------------------------------------------------------------
@@ -210,7 +211,7 @@ class OakCameraNode(Node):
         self._sinks.append(sink)
 
     @property
-    def driver(self) -> oak.OakDriver:
+    def driver(self) -> oak_device.OakDriver:
         return self._driver
 
     def stop(self, timeout: float = 5.0) -> bool:
@@ -261,7 +262,7 @@ class OakCameraNode(Node):
             f" + '{self._pub_info.topic_name}' as '{self._frame_id}'")
 
     def _on_event(self, kind: str, message: str, info: dict):
-        """Driver-thread events (see oak.OakDriver)."""
+        """Driver-thread events (see oak_device.OakDriver)."""
         if not self.context.ok():  # shutting down: rosout is gone
             return
         log = self.get_logger()
@@ -348,7 +349,7 @@ def depth_image_msg(depth: oak.DepthFrame, header) -> Image:
 
 # -- entry points ----------------------------------------------------------------------
 def _describe_startup_error(e: Exception) -> str:
-    return str(e) if isinstance(e, (oak.DeviceNotFoundError, ValueError)) else \
+    return str(e) if isinstance(e, (oak_device.DeviceNotFoundError, ValueError)) else \
         f'{type(e).__name__}: {e}'
 
 

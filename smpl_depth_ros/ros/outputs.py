@@ -16,7 +16,7 @@ Topics (relative to the node's namespace and name, `~/...`; offline under `--out
 | tracked | ~/bodies/tracked | JointState | body_<id> tracked in the frame |
 | tf | /tf | tf2_msgs/TFMessage | body_<id> + <joint>_<id> per person |
 
-The schemas of the JointState topics are in `ros.adapters`. Every message carries the
+The schemas of the JointState topics are in `ros.body_msgs`. Every message carries the
 depth image's header (stamp, frame_id); TF frames hang off that frame_id.
 """
 from __future__ import annotations
@@ -25,6 +25,8 @@ import numpy as np
 
 from smpl_depth_ros.config import OutputOptions
 from smpl_depth_ros.ros import adapters as A
+from smpl_depth_ros.ros import body_msgs as B
+from smpl_depth_ros.ros import markers as M
 
 TF_T = 'tf2_msgs/msg/TFMessage'
 # Output key -> (topic: relative, or absolute from '/'; message type), publishing order.
@@ -77,7 +79,7 @@ class FrameOutputs:
                 import torch
                 with torch.no_grad():
                     rest = self.body(**self.body.zero_params(1)).vertices[0].cpu().numpy()
-                faces = A.decimate_faces(rest, faces, max(1, int(round(frac * len(faces)))))
+                faces = M.decimate_faces(rest, faces, max(1, int(round(frac * len(faces)))))
             self._faces = (frac, faces)
         return self._faces[1]
 
@@ -96,39 +98,39 @@ class FrameOutputs:
         life = o.mesh_lifetime_s
         if o.publish_mesh:
             faces = self.marker_faces().reshape(-1)
-            for p in persons:  # points spliced in as one block (A.marker_cdr)
-                empty = A.mesh_marker(np.zeros((0, 3)), np.zeros((0, 3), np.int64), header,
+            for p in persons:  # points spliced in as one block (M.marker_cdr)
+                empty = M.mesh_marker(np.zeros((0, 3)), np.zeros((0, 3), np.int64), header,
                                       id=p.track_id, lifetime_s=life, msgs=f)
-                out.append(('mesh', A.marker_cdr(empty, p.vertices[faces], f)))
-            marks = [A.mesh_marker(np.zeros((0, 3)), np.zeros((0, 3), np.int64), header,
+                out.append(('mesh', M.marker_cdr(empty, p.vertices[faces], f)))
+            marks = [M.mesh_marker(np.zeros((0, 3)), np.zeros((0, 3), np.int64), header,
                                    id=p.track_id, lifetime_s=life, msgs=f) for p in persons]
-            arr = f.new('visualization_msgs/msg/MarkerArray', markers=marks + A.delete_markers(
+            arr = f.new('visualization_msgs/msg/MarkerArray', markers=marks + M.delete_markers(
                 [('body_mesh', i) for i in gone], header, msgs=f))
-            out.append(('meshes', A.marker_array_cdr(arr, [p.vertices[faces]
+            out.append(('meshes', M.marker_array_cdr(arr, [p.vertices[faces]
                                                            for p in persons], f)))
         if o.publish_skeleton and (persons or gone):
             marks = []
             for p in persons:
-                marks += list(A.skeleton_markers(p.joints, self.parents, header, id=p.track_id,
+                marks += list(M.skeleton_markers(p.joints, self.parents, header, id=p.track_id,
                                                  lifetime_s=life, msgs=f,
                                                  confidence=p.joint_confidence).markers)
-            marks += A.delete_markers([(ns, i) for i in gone
+            marks += M.delete_markers([(ns, i) for i in gone
                                        for ns in ('skeleton/joints', 'skeleton/bones')],
                                       header, msgs=f)
             out.append(('skeleton', f.new('visualization_msgs/msg/MarkerArray',
                                           markers=marks)))
         if o.publish_params:
             if persons:
-                out.append(('smpl_params', A.params_to_joint_state(persons[0], self.body,
+                out.append(('smpl_params', B.params_to_joint_state(persons[0], self.body,
                                                                    header, msgs=f)))
-            out.append(('bodies_params', A.bodies_to_joint_state(persons, self.body, header,
+            out.append(('bodies_params', B.bodies_to_joint_state(persons, self.body, header,
                                                                  msgs=f)))
-            out.append(('tracked', A.tracked_ids_msg(persons, header, msgs=f)))
+            out.append(('tracked', B.tracked_ids_msg(persons, header, msgs=f)))
         if o.publish_tf and self.has_tf and persons:
             tfs = []
             for p in persons:
                 R, x = self.joint_frames(p.params)
-                tfs += A.body_transforms(p.track_id, R, x, self.parents, self.joint_names,
+                tfs += B.body_transforms(p.track_id, R, x, self.parents, self.joint_names,
                                          header, msgs=f)
             out.append(('tf', f.new(TF_T, transforms=tfs)))
         return out

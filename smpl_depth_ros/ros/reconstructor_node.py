@@ -40,6 +40,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from smpl_depth_ros import params as P
 from smpl_depth_ros.config import PipelineConfig
+from smpl_depth_ros.stamps import stamp_to_ns
 from smpl_depth_ros.ros import adapters as A
 from smpl_depth_ros.ros.outputs import TOPICS, FrameOutputs
 from smpl_depth_ros.ros.runner import ros_args, run_nodes
@@ -397,7 +398,7 @@ class ReconstructorNode(Node):
         except InputError as e:
             self._report(e, msg.header)
             return
-        frame = Frame(msg.header, depth, K, A.stamp_to_ns(msg.header.stamp), received)
+        frame = Frame(msg.header, depth, K, stamp_to_ns(msg.header.stamp), received)
         self._mailbox.put(frame)
 
     # -- worker thread -------------------------------------------------------------------

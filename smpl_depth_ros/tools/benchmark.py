@@ -169,6 +169,7 @@ def bench_node(args) -> dict:
 
     from smpl_depth_ros.bagio import iter_depth_bag
     from smpl_depth_ros.ros import adapters
+    from smpl_depth_ros.stamps import cdr_stamp_ns
 
     # Up to 150 frames played forwards then backwards (a sequence bag has no jump
     # where the loop restarts, as a live camera has none).
@@ -198,7 +199,7 @@ def bench_node(args) -> dict:
 
     def on_tracked(data: bytes):
         now = node.get_clock().now().nanoseconds
-        lat.append((now - adapters.cdr_stamp_ns(data)) * 1e-6)
+        lat.append((now - cdr_stamp_ns(data)) * 1e-6)
         recv_t.append(time.monotonic())
         persons.append(len(deserialize_message(data, JointState).name))
     node.create_subscription(JointState, '/reconstructor/bodies/tracked', on_tracked, 10,

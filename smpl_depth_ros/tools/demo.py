@@ -75,6 +75,7 @@ def _frame_inputs(bag: Path, stamp: int):
     """(depth (H, W) metres, K) of the depth frame with header stamp `stamp`."""
     from smpl_depth_ros.offline import BagInput, select_topics
     from smpl_depth_ros.ros import adapters as A
+    from smpl_depth_ros.stamps import stamp_to_ns
     with BagInput(bag) as src:
         depth_topic, info_topic = select_topics(src.topics, None, None)
         K = depth = None
@@ -82,7 +83,7 @@ def _frame_inputs(bag: Path, stamp: int):
             msg = src.typestore.deserialize_cdr(raw, topic.msgtype)
             if topic.topic == info_topic and K is None:
                 K = A.camera_info_to_K(msg)[0]
-            elif topic.topic == depth_topic and A.stamp_to_ns(msg.header.stamp) == stamp:
+            elif topic.topic == depth_topic and stamp_to_ns(msg.header.stamp) == stamp:
                 depth = A.image_to_depth(msg)
             if depth is not None and K is not None:
                 return depth, K
@@ -92,10 +93,11 @@ def _frame_inputs(bag: Path, stamp: int):
 def _output_image(out_bag: Path, topic: str, stamp: int) -> np.ndarray | None:
     from smpl_depth_ros.offline import BagInput
     from smpl_depth_ros.ros import adapters as A
+    from smpl_depth_ros.stamps import stamp_to_ns
     with BagInput(out_bag) as src:
         for t, _bt, raw in src.messages({topic}):
             msg = src.typestore.deserialize_cdr(raw, t.msgtype)
-            if A.stamp_to_ns(msg.header.stamp) == stamp:
+            if stamp_to_ns(msg.header.stamp) == stamp:
                 return A.image_to_array(msg)
     return None
 
