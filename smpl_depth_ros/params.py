@@ -57,23 +57,38 @@ class Param:
         return type(self.default)
 
 
-def _build() -> dict[str, Param]:
+def build_schema(classes: dict[str, type], prefixes: dict[str, str] | None = None
+                 ) -> dict[str, Param]:
+    """The parameters declared (`config.param`) in the dataclasses `classes` (group ->
+    class), named `<prefix><field>` (`prefixes`: group -> prefix, default none)."""
     out = {}
-    for group, cls in _CLASSES.items():
+    for group, cls in classes.items():
         for f in fields(cls):
             if 'doc' not in f.metadata:   # PipelineConfig.fit: the FitConfig group
                 continue
             m = f.metadata
             choices = m['choices']() if callable(m['choices']) else m['choices']
-            name = f'fit.{f.name}' if group == 'fit' else f.name
-            assert f.default is not MISSING, name
+            name = (prefixes or {}).get(group, '') + f.name
+            assert f.default is not MISSING and name not in out, name
             out[name] = Param(name, group, f.name, f.default, m['doc'], m['range'],
                               tuple(choices) if choices else None, m['restart'],
                               m['advanced'])
     return out
 
 
-SCHEMA: dict[str, Param] = _build()
+def check_declared(schema: dict[str, Param], values: dict[str, Any]) -> str | None:
+    """Why values (by name, all of `schema`) break a declared range or choice, or None."""
+    for name, p in schema.items():
+        v = values[name]
+        if p.choices and v not in p.choices:
+            return f"{name} must be one of {', '.join(p.choices)}; got {v!r}"
+        if p.range and not p.range[0] <= v <= p.range[1]:
+            return f'{name} must be in [{p.range[0]}, {p.range[1]}], got {v}'
+    return None
+
+
+# The reconstructor's parameters (the node, process_bag, evaluate, sweep).
+SCHEMA: dict[str, Param] = build_schema(_CLASSES, {'fit': 'fit.'})
 _BY_ROS_NAME = {p.ros_name: p for p in SCHEMA.values()}
 
 
@@ -100,8 +115,7 @@ def values_of(config: PipelineConfig | None = None, outputs: OutputOptions | Non
 def coerce(name: str, value) -> Any:
     """`value` as parameter `name`'s type (ints for floats, YAML 1.1's '1e-5' strings), or
     ParamError. `name` must be known."""
-    p = lookup(name)
-    kind = p.kind
+    kind = lookup(name).kind
     if kind is bool:
         if not isinstance(value, bool):
             raise ParamError(f'parameter {name} must be true/false, got {value!r}')
@@ -126,12 +140,9 @@ def coerce(name: str, value) -> Any:
 
 def check(values: dict[str, Any]) -> str | None:
     """Why a full set of values (by name, as `defaults()`) is invalid, or None."""
-    for name, p in SCHEMA.items():
-        v = values[name]
-        if p.choices and v not in p.choices:
-            return f"{name} must be one of {', '.join(p.choices)}; got {v!r}"
-        if p.range and not p.range[0] <= v <= p.range[1]:
-            return f'{name} must be in [{p.range[0]}, {p.range[1]}], got {v}'
+    reason = check_declared(SCHEMA, values)
+    if reason:
+        return reason
     if not values['depth_min'] < values['depth_max']:
         return (f"depth_min ({values['depth_min']}) must be smaller than depth_max "
                 f"({values['depth_max']})")

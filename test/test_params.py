@@ -113,3 +113,31 @@ def test_values_round_trip_through_the_dataclasses():
     back, outputs, node = P.split(values)
     assert back == cfg and outputs == OutputOptions() and node == NodeOptions()
     assert asdict(back)['fit']['iterations'] == 4
+
+
+def test_ros_descriptors_carry_the_declarations():
+    from rcl_interfaces.msg import ParameterType
+
+    from smpl_depth_ros.ros.parameters import descriptor
+    d = descriptor(P.SCHEMA['fit.iterations'])
+    assert d.name == 'advanced.fit.iterations' and not d.read_only
+    assert d.type == ParameterType.PARAMETER_INTEGER
+    assert (d.integer_range[0].from_value, d.integer_range[0].to_value) == (0, 10_000)
+    d = descriptor(P.SCHEMA['backend'])
+    assert d.read_only and 'one of: anny, smpl' in d.additional_constraints
+    assert d.description == P.SCHEMA['backend'].doc
+    d = descriptor(P.SCHEMA['depth_min'])
+    assert d.floating_point_range[0].to_value == 100.0
+
+
+def test_the_oak_node_declares_its_parameters_the_same_way():
+    pytest.importorskip('depthai')
+    from smpl_depth_ros.ros import oak
+    from smpl_depth_ros.ros.oak_camera_node import SCHEMA, validate
+    assert all(p.restart for p in SCHEMA.values() if p.group == 'camera')
+    assert not SCHEMA['frame_id'].restart and not SCHEMA['warn_throttle_s'].restart
+    values = {n: p.default for n, p in SCHEMA.items()}
+    assert validate(values) is None
+    assert 'decimation must be in [1, 4]' in validate(dict(values, decimation=5))
+    assert 'preset must be one of' in validate(dict(values, preset='fastest'))
+    assert 'max_range' in oak.validate(oak.OakConfig(min_range=3.0, max_range=2.0))

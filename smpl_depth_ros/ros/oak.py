@@ -2,7 +2,8 @@
 
 No rclpy here: the `oak_camera` node (`ros.oak_camera_node`) wires this module to topics.
 
-* `OakConfig`: the camera settings (frozen; the node's parameters mirror it);
+* `OakConfig`: the camera settings (frozen; each field declares one of the node's
+  parameters);
 * `build_pipeline`: CAM_B/CAM_C mono pair -> StereoDepth (preset, subpixel, filters, depth
   range; optionally aligned to CAM_A) -> a host output queue of depth `ImgFrame`s;
 * `frame_to_depth`: a depth `ImgFrame` (RAW16, millimetres) -> `DepthFrame` (uint16 array,
@@ -29,11 +30,14 @@ import datetime
 import math
 import threading
 import time
-from dataclasses import dataclass, fields
+from dataclasses import asdict, dataclass, fields
 from typing import Any, Callable
 
 import depthai as dai
 import numpy as np
+
+from smpl_depth_ros.config import param
+from smpl_depth_ros.params import build_schema, check_declared
 
 # -- configuration ---------------------------------------------------------------------
 # Preset name -> dai.node.StereoDepth.PresetMode member.
@@ -54,71 +58,76 @@ COLOR_SOCKET = dai.CameraBoardSocket.CAM_A
 MAX_RANGE_M = 65.535  # uint16 millimetres
 
 
+_R = dict(restart=True)  # every camera setting needs a restart (reopens the device)
+
+
 @dataclass(frozen=True)
 class OakConfig:
-    """Camera, stereo and connection settings (defaults of the `oak_camera` node).
+    """Camera, stereo and connection settings: the `oak_camera` node's parameters, each
+    declared here (`config.param`).
 
     Filter settings named 'preset' keep what the stereo preset chose; 'on' / 'off' (and the
     numeric settings of an 'on' filter) override it. Decimation is always applied, so
     `width` x `height` is the published size unless `decimation` > 1.
     """
 
-    device_id: str = ''                 # MxID / device ID, IP or USB name; '' = first found
-    connect_timeout_s: float = 5.0      # how long to look for the device at start-up
-    wait_for_device: bool = False       # at start-up: keep looking instead of failing
-    width: int = 640                    # mono outputs and depth (pixels)
-    height: int = 400
-    fps: float = 30.0
-    preset: str = 'default'             # see PRESETS
-    subpixel: bool = True
-    extended_disparity: bool = False    # closer minimum range, at some cost
-    confidence_threshold: int = -1      # 0..255; -1 = the preset's
-    decimation: int = 1                 # 1 = off (publish width x height); 2..4
-    median_filter: str = 'preset'       # preset | off | 3x3 | 5x5 | 7x7
-    spatial_filter: str = 'preset'      # preset | on | off
-    spatial_alpha: float = 0.5
-    spatial_delta: int = 0              # 0 = auto (3 disparity levels)
-    spatial_hole_filling_radius: int = 2
-    spatial_iterations: int = 1
-    temporal_filter: str = 'preset'     # preset | on | off
-    temporal_alpha: float = 0.4
-    temporal_delta: int = 0             # 0 = auto
-    temporal_persistency: str = 'valid_2_in_last_4'  # see PERSISTENCY
-    min_range: float = 0.2              # metres; depth outside [min, max] is 0 (invalid)
-    max_range: float = 10.0
-    align_to_color: bool = False        # depth in CAM_A's view instead of rectified CAM_C
-    frame_timeout_s: float = 2.0        # no frame for this long = device lost
-    reconnect_backoff_s: float = 0.5    # first retry delay; doubles up to the max
-    reconnect_backoff_max_s: float = 10.0
+    device_id: str = param('', "device to open: MxID / device ID, IP (PoE) or USB name; '' "
+                           '= the first one found', **_R)
+    connect_timeout_s: float = param(5.0, 'how long to look for the device at start-up (s)',
+                                     range=(0.0, 3600.0), **_R)
+    wait_for_device: bool = param(False, 'at start-up, keep looking (with backoff) instead '
+                                  'of exiting', **_R)
+    width: int = param(640, 'depth width (pixels; the mono outputs are requested at this '
+                       'size)', range=(16, 4096), **_R)
+    height: int = param(400, 'depth height (pixels)', range=(16, 4096), **_R)
+    fps: float = param(30.0, 'camera frame rate', range=(1.0, 120.0), **_R)
+    preset: str = param('default', 'stereo preset', choices=tuple(PRESETS), **_R)
+    subpixel: bool = param(True, 'subpixel disparity (finer depth steps far away)', **_R)
+    extended_disparity: bool = param(False, 'extended disparity (closer minimum range, at '
+                                     'some cost)', **_R)
+    confidence_threshold: int = param(-1, "stereo confidence threshold 0..255 (-1 = the "
+                                      "preset's)", range=(-1, 255), **_R)
+    decimation: int = param(1, 'decimation factor (1 = publish width x height)',
+                            range=(1, 4), **_R)
+    median_filter: str = param('preset', 'median filter', choices=('preset', *MEDIAN), **_R)
+    spatial_filter: str = param('preset', "spatial filter: 'preset', 'on' (with the "
+                                "spatial_* values) or 'off'", choices=SWITCH, **_R)
+    spatial_alpha: float = param(0.5, 'spatial filter smoothing alpha', range=(0.0, 1.0),
+                                 **_R)
+    spatial_delta: int = param(0, 'spatial filter edge threshold (0 = auto: 3 disparity '
+                               'levels)', range=(0, 255), **_R)
+    spatial_hole_filling_radius: int = param(2, 'spatial filter hole-filling radius '
+                                             '(pixels)', range=(0, 255), **_R)
+    spatial_iterations: int = param(1, 'spatial filter iterations', range=(1, 10), **_R)
+    temporal_filter: str = param('preset', "temporal filter: 'preset', 'on' (with the "
+                                 "temporal_* values) or 'off'", choices=SWITCH, **_R)
+    temporal_alpha: float = param(0.4, 'temporal filter alpha', range=(0.0, 1.0), **_R)
+    temporal_delta: int = param(0, 'temporal filter edge threshold (0 = auto)',
+                                range=(0, 255), **_R)
+    temporal_persistency: str = param('valid_2_in_last_4', 'temporal filter persistency',
+                                      choices=tuple(PERSISTENCY), **_R)
+    min_range: float = param(0.2, 'nearest depth published (m); nearer pixels are 0 '
+                             '(invalid)', range=(0.0, MAX_RANGE_M), **_R)
+    max_range: float = param(10.0, 'farthest depth published (m); farther pixels are 0',
+                             range=(0.0, MAX_RANGE_M), **_R)
+    align_to_color: bool = param(False, 'align depth to the colour camera (CAM_A) instead '
+                                 'of the rectified right camera (CAM_C)', **_R)
+    frame_timeout_s: float = param(2.0, 'no frame for this long while running = device lost '
+                                   '(s)', range=(0.1, 3600.0), **_R)
+    reconnect_backoff_s: float = param(0.5, 'first reconnection delay (s); doubles up to the '
+                                       'maximum', range=(0.01, 3600.0), **_R)
+    reconnect_backoff_max_s: float = param(10.0, 'longest reconnection delay (s)',
+                                           range=(0.01, 3600.0), **_R)
 
 
-# Allowed ranges of the numeric settings, inclusive.
-RANGES: dict[str, tuple[float, float]] = {
-    'connect_timeout_s': (0.0, 3600.0), 'width': (16, 4096), 'height': (16, 4096),
-    'fps': (1.0, 120.0), 'confidence_threshold': (-1, 255), 'decimation': (1, 4),
-    'spatial_alpha': (0.0, 1.0), 'spatial_delta': (0, 255),
-    'spatial_hole_filling_radius': (0, 255), 'spatial_iterations': (1, 10),
-    'temporal_alpha': (0.0, 1.0), 'temporal_delta': (0, 255),
-    'min_range': (0.0, MAX_RANGE_M), 'max_range': (0.0, MAX_RANGE_M),
-    'frame_timeout_s': (0.1, 3600.0), 'reconnect_backoff_s': (0.01, 3600.0),
-    'reconnect_backoff_max_s': (0.01, 3600.0),
-}
-CHOICES: dict[str, tuple[str, ...]] = {
-    'preset': tuple(PRESETS), 'median_filter': ('preset',) + tuple(MEDIAN),
-    'spatial_filter': SWITCH, 'temporal_filter': SWITCH,
-    'temporal_persistency': tuple(PERSISTENCY),
-}
+SCHEMA = build_schema({'camera': OakConfig})
 
 
 def validate(cfg: OakConfig) -> str | None:
     """Why `cfg` is invalid, or None."""
-    for name, choices in CHOICES.items():
-        if getattr(cfg, name) not in choices:
-            return f"{name} must be one of {', '.join(choices)}; got '{getattr(cfg, name)}'"
-    for name, (lo, hi) in RANGES.items():
-        v = getattr(cfg, name)
-        if not lo <= v <= hi:
-            return f'{name} must be in [{lo}, {hi}], got {v}'
+    reason = check_declared(SCHEMA, asdict(cfg))
+    if reason:
+        return reason
     if not cfg.min_range < cfg.max_range:
         return f'min_range ({cfg.min_range}) must be smaller than max_range ({cfg.max_range})'
     if cfg.reconnect_backoff_s > cfg.reconnect_backoff_max_s:

@@ -30,7 +30,7 @@ os.environ.setdefault('DEPTHAI_LEVEL', 'error')
 import sys  # noqa: E402
 import threading  # noqa: E402
 import time  # noqa: E402
-from dataclasses import fields  # noqa: E402
+from dataclasses import dataclass  # noqa: E402
 from typing import Any, Callable  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -39,105 +39,50 @@ from rclpy.executors import MultiThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
-from rcl_interfaces.msg import (FloatingPointRange, IntegerRange,  # noqa: E402
-                                ParameterDescriptor, ParameterType, SetParametersResult)
+from rcl_interfaces.msg import SetParametersResult  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 
+from smpl_depth_ros.config import param  # noqa: E402
+from smpl_depth_ros.params import build_schema, check_declared  # noqa: E402
 from smpl_depth_ros.ros import adapters as A  # noqa: E402
 from smpl_depth_ros.ros import oak, oak_device  # noqa: E402
+from smpl_depth_ros.ros.parameters import declare  # noqa: E402
 from smpl_depth_ros.ros.runner import ros_args, run_nodes  # noqa: E402
 
 NODE_NAME = 'oak_camera'
 DEPTH_TOPIC = 'depth/image_raw'
 INFO_TOPIC = 'depth/camera_info'
 
-# Descriptions of the OakConfig fields.
-_DOC = {
-    'device_id': "device to open: MxID / device ID, IP (PoE) or USB name; '' = the first "
-                 'one found',
-    'connect_timeout_s': 'how long to look for the device at start-up (s)',
-    'wait_for_device': 'at start-up, keep looking (with backoff) instead of exiting',
-    'width': 'depth width (pixels; the mono outputs are requested at this size)',
-    'height': 'depth height (pixels)',
-    'fps': 'camera frame rate',
-    'preset': 'stereo preset: ' + ', '.join(oak.PRESETS),
-    'subpixel': 'subpixel disparity (finer depth steps far away)',
-    'extended_disparity': 'extended disparity (closer minimum range)',
-    'confidence_threshold': 'stereo confidence threshold 0..255 (-1 = the preset\'s)',
-    'decimation': 'decimation factor (1 = publish width x height)',
-    'median_filter': 'median filter: preset, off, 3x3, 5x5 or 7x7',
-    'spatial_filter': "spatial filter: 'preset', 'on' (with the spatial_* values) or 'off'",
-    'spatial_alpha': 'spatial filter smoothing alpha (0..1)',
-    'spatial_delta': 'spatial filter edge threshold (0 = auto)',
-    'spatial_hole_filling_radius': 'spatial filter hole-filling radius (pixels)',
-    'spatial_iterations': 'spatial filter iterations',
-    'temporal_filter': "temporal filter: 'preset', 'on' (with the temporal_* values) or "
-                       "'off'",
-    'temporal_alpha': 'temporal filter alpha (0..1)',
-    'temporal_delta': 'temporal filter edge threshold (0 = auto)',
-    'temporal_persistency': 'temporal filter persistency: ' + ', '.join(oak.PERSISTENCY),
-    'min_range': 'nearest depth published (metres); nearer pixels are 0',
-    'max_range': 'farthest depth published (metres); farther pixels are 0',
-    'align_to_color': 'align depth to the colour camera (CAM_A) instead of the rectified '
-                      'right camera (CAM_C)',
-    'frame_timeout_s': 'no frame for this long while running = device lost (s)',
-    'reconnect_backoff_s': 'first reconnection delay (s); doubles up to the maximum',
-    'reconnect_backoff_max_s': 'longest reconnection delay (s)',
-}
-# Node-only parameters: default, description.
-_NODE_PARAMS = {
-    'frame_id': ('oak_depth_optical_frame', 'frame_id of the published header'),
-    'publisher_reliability': ('reliable', "QoS reliability of the publishers: 'reliable' "
-                              "(serves reliable and best-effort subscribers) or "
-                              "'best_effort'"),
-    'warn_throttle_s': (5.0, 'per-problem throttle of warnings (s)'),
-}
-RUNTIME = {'frame_id', 'warn_throttle_s'}  # every other parameter needs a restart
 RELIABILITY = {'best_effort': ReliabilityPolicy.BEST_EFFORT,
                'reliable': ReliabilityPolicy.RELIABLE}
 
 
+@dataclass(frozen=True)
+class OakNodeOptions:
+    """The node's own parameters (beside the camera's, `oak.OakConfig`)."""
+
+    frame_id: str = param('oak_depth_optical_frame', 'frame_id of the published header')
+    publisher_reliability: str = param('reliable', "QoS reliability of the publishers: "
+                                       "'reliable' (serves reliable and best-effort "
+                                       "subscribers) or 'best_effort'",
+                                       choices=tuple(RELIABILITY), restart=True)
+    warn_throttle_s: float = param(5.0, 'per-problem throttle of warnings (s)',
+                                   range=(0.0, 3600.0))
+
+
+SCHEMA = build_schema({'camera': oak.OakConfig, 'node': OakNodeOptions})
+
+
 def parameter_defaults() -> dict[str, Any]:
-    """Every node parameter with its default (OakConfig's fields + node-only ones)."""
-    cfg = oak.OakConfig()
-    out = {f.name: getattr(cfg, f.name) for f in fields(oak.OakConfig)}
-    out.update({k: v[0] for k, v in _NODE_PARAMS.items()})
-    return out
-
-
-def _descriptor(name: str, default) -> ParameterDescriptor:
-    doc = _DOC.get(name) or _NODE_PARAMS[name][1]
-    d = ParameterDescriptor(name=name, description=doc, read_only=name not in RUNTIME)
-    lo_hi = oak.RANGES.get(name) or ((0.0, 3600.0) if name == 'warn_throttle_s' else None)
-    if isinstance(default, bool):
-        d.type = ParameterType.PARAMETER_BOOL
-    elif isinstance(default, int):
-        d.type = ParameterType.PARAMETER_INTEGER
-        if lo_hi:
-            d.integer_range = [IntegerRange(from_value=int(lo_hi[0]), to_value=int(lo_hi[1]),
-                                            step=1)]
-    elif isinstance(default, float):
-        d.type = ParameterType.PARAMETER_DOUBLE
-        if lo_hi:
-            d.floating_point_range = [FloatingPointRange(from_value=float(lo_hi[0]),
-                                                         to_value=float(lo_hi[1]), step=0.0)]
-    else:
-        d.type = ParameterType.PARAMETER_STRING
-    choices = oak.CHOICES.get(name) or (tuple(RELIABILITY) if name == 'publisher_reliability'
-                                        else None)
-    if choices:
-        d.additional_constraints = 'one of: ' + ', '.join(choices)
-    if d.read_only:
-        d.additional_constraints = (d.additional_constraints + '; ' if
-                                    d.additional_constraints else '') + 'needs a restart'
-    return d
+    """Every node parameter with its default."""
+    return {n: p.default for n, p in SCHEMA.items()}
 
 
 def validate(values: dict[str, Any]) -> str | None:
     """Why a full set of parameter values is invalid, or None."""
-    if values['publisher_reliability'] not in RELIABILITY:
-        return (f"publisher_reliability must be one of {', '.join(RELIABILITY)}; "
-                f"got '{values['publisher_reliability']}'")
+    reason = check_declared(SCHEMA, values)
+    if reason:
+        return reason
     if not str(values['frame_id']).strip():
         return 'frame_id must not be empty'
     return oak.validate(oak.config_from_dict(values))
@@ -162,9 +107,7 @@ class OakCameraNode(Node):
 
     def __init__(self, connection_factory: ConnectionFactory | None = None, **kwargs):
         super().__init__(NODE_NAME, **kwargs)
-        defaults = parameter_defaults()
-        self.declare_parameters('', [(n, v, _descriptor(n, v)) for n, v in defaults.items()])
-        self._values = {n: self.get_parameter(n).value for n in defaults}
+        self._values = declare(self, SCHEMA)
         reason = validate(self._values)
         if reason:
             raise ValueError(f'invalid parameters: {reason}')

@@ -33,8 +33,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
-                                ParameterType, SetParametersResult)
+from rcl_interfaces.msg import SetParametersResult
 from diagnostic_msgs.msg import DiagnosticArray
 from sensor_msgs.msg import CameraInfo, Image
 
@@ -43,6 +42,7 @@ from smpl_depth_ros.config import PipelineConfig
 from smpl_depth_ros.stamps import stamp_to_ns
 from smpl_depth_ros.ros import adapters as A
 from smpl_depth_ros.ros.outputs import TOPICS, FrameOutputs
+from smpl_depth_ros.ros.parameters import declare
 from smpl_depth_ros.ros.runner import ros_args, run_nodes
 from smpl_depth_ros.types import InputError
 
@@ -53,27 +53,6 @@ STAMP_JUMP_FORWARD_S = 60.0  # ... and this far after it
 INFO_STALE_S = 2.0           # diagnostics warn when camera_info is older than this
 RELIABILITY = {'best_effort': ReliabilityPolicy.BEST_EFFORT,
                'reliable': ReliabilityPolicy.RELIABLE}
-
-
-def _descriptor(p: P.Param) -> ParameterDescriptor:
-    """The ROS descriptor of a schema parameter (ranges enforced by rclpy too)."""
-    d = ParameterDescriptor(name=p.ros_name, description=p.doc, read_only=p.restart)
-    if p.kind is bool:
-        d.type = ParameterType.PARAMETER_BOOL
-    elif p.kind is int:
-        d.type = ParameterType.PARAMETER_INTEGER
-        if p.range:
-            d.integer_range = [IntegerRange(from_value=p.range[0], to_value=p.range[1],
-                                            step=1)]
-    elif p.kind is float:
-        d.type = ParameterType.PARAMETER_DOUBLE
-        if p.range:
-            d.floating_point_range = [FloatingPointRange(
-                from_value=float(p.range[0]), to_value=float(p.range[1]), step=0.0)]
-    else:
-        d.type = ParameterType.PARAMETER_STRING
-    d.additional_constraints = P.constraints(p)
-    return d
 
 
 # -- the frame hand-off ----------------------------------------------------------------
@@ -146,9 +125,7 @@ class ReconstructorNode(Node):
         log = self.get_logger()
         # Every parameter of the schema (params.SCHEMA), expert knobs under 'advanced.';
         # self._values holds them by their schema names.
-        self.declare_parameters('', [(p.ros_name, p.default, _descriptor(p))
-                                     for p in P.SCHEMA.values()])
-        self._values = {n: self.get_parameter(p.ros_name).value for n, p in P.SCHEMA.items()}
+        self._values = declare(self, P.SCHEMA)
         reason = P.check(self._values)
         if reason:
             raise ValueError(f'invalid parameters: {reason}')
