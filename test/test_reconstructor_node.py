@@ -632,7 +632,11 @@ def test_distortion_is_reported_not_undone(harness, core, scene):
 
 def test_runtime_parameter_validation(harness, core, scene):
     # A short (command-line tool) name in the overrides is reported, not silently dropped.
-    node, tester = harness(**{'fit.iterations': 3})
+    # Constructing the node changes nothing process-wide (tune_process does, in main).
+    import gc
+    threads, frozen = torch.get_num_threads(), gc.get_freeze_count()
+    node, tester = harness(**{'fit.iterations': 3, 'cpu_threads': threads + 1})
+    assert (torch.get_num_threads(), gc.get_freeze_count()) == (threads, frozen)
     assert node.unknown_parameters == ['fit.iterations']
     assert node.get_parameter('advanced.fit.iterations').value == FitConfig().iterations
     bad = [Parameter('depth_min', value=7.0),                       # >= depth_max (6.0)

@@ -357,7 +357,11 @@ def main_with_reconstructor(argv: list[str] | None = None) -> int:
     parameter names do not overlap except warn_throttle_s.
     """
     name = 'reconstruct_oak'
-    return run_nodes(name, ros_args(name, argv), make_reconstruct_oak,
+    def make_nodes():
+        camera, rec = make_reconstruct_oak()
+        return camera, rec.tune_process()
+
+    return run_nodes(name, ros_args(name, argv), make_nodes,
                      executor_factory=lambda: MultiThreadedExecutor(num_threads=2),
                      describe=_describe_startup_error)
 

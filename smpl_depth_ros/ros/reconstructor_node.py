@@ -177,9 +177,6 @@ class ReconstructorNode(Node):
                 100 if key == 'tf' else 5)  # tf2_ros' TransformBroadcaster keeps 100
         self._pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
 
-        if self._values['cpu_threads'] > 0:
-            import torch
-            torch.set_num_threads(self._values['cpu_threads'])
         if reconstructor_factory is None:
             from smpl_depth_ros.pipeline import Reconstructor  # torch: after rclpy.init
             reconstructor_factory = Reconstructor
@@ -191,11 +188,6 @@ class ReconstructorNode(Node):
         if not self.context.ok():  # SIGINT/SIGTERM while loading
             raise ExternalShutdownException()
         self._body = self._rec.body
-        # The model, network and libraries are loaded for good: move their objects out of
-        # the cyclic garbage collector's reach, so that collections triggered by each
-        # frame's many small objects stay short (fewer latency spikes).
-        gc.collect()
-        gc.freeze()
         self._outputs = FrameOutputs(self._body, self._rec.fitter.joint_frames,
                                      outputs,
                                      has_tf='tf' in self._pubs)
@@ -216,6 +208,19 @@ class ReconstructorNode(Node):
         log.info(f"listening on '{self._sub_depth.topic_name}' + "
                  f"'{self._sub_info.topic_name}' ({self._values['qos_reliability']}, depth "
                  f"{self._values['qos_depth']})")
+
+    def tune_process(self) -> 'ReconstructorNode':
+        """Process-wide settings for a process that runs this node, applied by the console
+        scripts (never by the constructor): torch's CPU threads (`cpu_threads`), and the
+        loaded model, network and libraries moved out of the cyclic garbage collector's
+        reach, so that collections triggered by each frame's many small objects stay short
+        (fewer latency spikes)."""
+        if self._values['cpu_threads'] > 0:
+            import torch
+            torch.set_num_threads(self._values['cpu_threads'])
+        gc.collect()
+        gc.freeze()
+        return self
 
     # -- parameters ----------------------------------------------------------------------
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
@@ -529,7 +534,7 @@ def main(argv: list[str] | None = None) -> int:
     if '--print-params' in args[1:args.index('--ros-args') if '--ros-args' in args else None]:
         sys.stdout.write(P.params_yaml())
         return 0
-    return run_nodes(NODE_NAME, args, lambda: [ReconstructorNode()])
+    return run_nodes(NODE_NAME, args, lambda: [ReconstructorNode().tune_process()])
 
 
 if __name__ == '__main__':
