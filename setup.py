@@ -47,7 +47,8 @@ setup(
     ],
     install_requires=['setuptools', 'numpy', 'scipy', 'torch', 'trimesh', 'rosbags',
                       'anny', 'safetensors', 'tqdm', 'pillow', 'roma', 'threadpoolctl'],
-    extras_require={'test': ['pytest', 'hypothesis']},  # colcon test runs pytest
+    # colcon test runs pytest; ray: process_bag --ray (optional)
+    extras_require={'test': ['pytest', 'hypothesis'], 'ray': ['ray>=2.9']},
     zip_safe=False,
     maintainer='smpl_depth_ros maintainers',
     maintainer_email='maintainers@smpl-depth-ros.invalid',

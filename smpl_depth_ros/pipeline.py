@@ -204,6 +204,17 @@ class Reconstructor:
         """Forget the tracks (the next frame is fitted cold; persons get new IDs)."""
         self.tracker.clear()
 
+    def restart(self) -> None:
+        """Back to the state just after loading: no tracks and IDs from 1 again, the 'auto'
+        sensor noise measured afresh, the fitter's random stream from its start. What
+        follows then depends only on the frames given from now on (a chunk of a bag on
+        a worker, the next bag of a batch)."""
+        self.tracker = Tracker(self.config.track_timeout_s, self.config.track_gate_m)
+        self._auto = AutoNoise() if self.config.sensor == 'auto' else None
+        self._preset = None
+        self._frames = 0
+        self.fitter.reseed()
+
     def set_config(self, config: PipelineConfig) -> None:
         """Change the configuration between frames (the node's run-time parameters; a
         new device or body model needs a new Reconstructor). A changed `sensor` starts

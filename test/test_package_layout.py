@@ -79,7 +79,7 @@ MODULE_KEYS = {'numpy': 'python3-numpy', 'scipy': 'python3-scipy', 'yaml': 'pyth
                'trimesh': 'python3-trimesh-pip', 'rosbags': 'python3-rosbags-pip',
                'depthai': 'python3-depthai-pip'}
 NO_KEY = {'anny', 'safetensors', 'roma', 'embreex', 'threadpoolctl'}  # requirements-jazzy
-OPTIONAL = {'compression', 'backports', 'lz4', 'pytest'}  # guarded imports / tests only
+OPTIONAL = {'compression', 'backports', 'lz4', 'pytest', 'ray'}  # guarded imports / tests only
 ROS_MODULES = {'rclpy', 'rcl_interfaces', 'rosgraph_msgs', 'rosidl_runtime_py',
                'sensor_msgs', 'visualization_msgs', 'diagnostic_msgs', 'ament_index_python'}
 # Message packages used by type name only ('geometry_msgs/msg/Point').

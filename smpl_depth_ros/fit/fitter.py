@@ -134,6 +134,11 @@ class Fitter(FastSolver):
         self.spread_m = SPREAD_M
         self._noisy: dict[int, 'Fitter'] = {}
 
+    def reseed(self) -> None:
+        """Restart the random stream (the subsets of large point sets) from its start, as
+        in a new Fitter; the noise-widened copies (`for_noise`) share it."""
+        self._rng.bit_generator.state = np.random.default_rng(0).bit_generator.state
+
     def for_noise(self, excess: float) -> 'Fitter':
         """This fitter with its noise-dependent thresholds widened for an excess sensor
         noise (metres, sensor_noise.scaled_fit_config / scaled_spread); itself for 0.

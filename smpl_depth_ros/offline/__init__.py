@@ -1,9 +1,10 @@
 """process_bag: run the reconstructor over a recorded ROS 2 bag, every frame accounted for.
 
-    process_bag BAG --out DIR [--params-file config/reconstructor.yaml] [--device cpu]
-                [--depth-topic T] [--info-topic T] [--no-tracking] [-p name=value ...]
-                [--storage mcap|sqlite3] [--compress] [--export-meshes ply|obj|glb]
-                [--workers N] [--overwrite]
+    process_bag BAG [BAG ...] --out DIR [--params-file config/reconstructor.yaml]
+                [--device cpu] [--depth-topic T] [--info-topic T] [--no-tracking]
+                [-p name=value ...] [--storage mcap|sqlite3] [--compress]
+                [--export-meshes ply|obj|glb] [--workers N] [--chunk-size N]
+                [--ray [ADDRESS]] [--overwrite]
 
 BAG is a rosbag2 directory (metadata.yaml + storage files) or a single .mcap / .db3 file,
 read with `rosbags` (no ROS install needed) one message at a time. The depth
@@ -20,8 +21,12 @@ tracking across consecutive frames. DIR receives:
 * ``results.npz``: one row per depth frame read (stamps, status, parameters, residual,
   timings; see `save_results`);
 * ``meshes/<stamp_ns>.<fmt>`` with ``--export-meshes``;
-* ``summary.json``: frames_read, processed, skipped by reason, mean timings, fps, peak RSS.
-  The same JSON is printed on stdout at the end.
+* ``summary.json``: frames_read, processed, skipped by reason, mean timings, fps, peak RSS,
+  and per worker (``per_worker``: frames, busy seconds, frames/s, failures). The same JSON
+  is printed on stdout at the end.
+
+Several bags, or a folder of bags: DIR holds one such output folder per bag, named after
+it; the workers are loaded once for all; one JSON line per bag, the worst exit code.
 
 Invariant: ``frames_read == processed + sum(skipped.values())``: a frame is either
 processed or skipped with a reason ('no_camera_info', 'no_person', 'encoding',
@@ -38,11 +43,13 @@ done, 1 unusable input or options, 3 the bag is damaged (partial results written
 interrupted (partial results written).
 
 `--workers N` runs N processes, each with its own Reconstructor, on contiguous chunks of
-frames (tracking restarts at each chunk); the output keeps the input order.
+frames (tracking restarts at each chunk); the output keeps the input order. `--ray` runs
+them as Ray actors instead, on a local Ray or on a cluster (`--ray HOST:6379`), with the
+same output.
 
 Modules: `params` (the node's parameters), `bagread` (reading bags, damaged ones too),
-`workers` (per-frame work and its runners), `run` (`process_bag`, the pass over the bag,
-results), `cli` (the command line), `errors`.
+`workers` (per-frame work and its runners), `ray_runner` (the runner on Ray), `run`
+(`process_bag`, the pass over the bag, results), `cli` (the command line), `errors`.
 """
 from smpl_depth_ros.offline.bagread import BagInput, Topic, select_topics
 from smpl_depth_ros.offline.cli import (EXIT_DAMAGED, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE,

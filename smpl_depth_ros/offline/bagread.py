@@ -1,7 +1,7 @@
 """Reading rosbag2 bags one message at a time, damaged ones too: `BagInput` (rosbags'
 AnyReader, or the readable part of a truncated or corrupt MCAP / sqlite3 file through
-`_McapScan` / `_Sqlite3Scan`), and the choice of the depth and camera_info topics
-(`select_topics`)."""
+`_McapScan` / `_Sqlite3Scan`), the choice of the depth and camera_info topics
+(`select_topics`), and which paths are bags (`is_bag`, `bags_in`)."""
 from __future__ import annotations
 
 import shutil
@@ -48,6 +48,21 @@ def _storage_files(path: Path) -> list[Path]:
     if not files or not all(f.exists() for f in files):
         files = sorted(p for p in path.iterdir() if p.suffix in ('.mcap', '.db3'))
     return files
+
+
+def is_bag(path: Path) -> bool:
+    """A .mcap / .db3 file, or a rosbag2 directory (metadata.yaml or storage files)."""
+    if path.is_file():
+        return path.suffix in ('.mcap', '.db3')
+    return path.is_dir() and ((path / 'metadata.yaml').is_file() or any(
+        p.suffix in ('.mcap', '.db3') and p.is_file() for p in path.iterdir()))
+
+
+def bags_in(folder: Path) -> list[Path]:
+    """The bags directly inside `folder`, by name; [] when it is a bag itself."""
+    if not folder.is_dir() or is_bag(folder):
+        return []
+    return sorted(p for p in folder.iterdir() if is_bag(p))
 
 
 def _typestore_for(topics: list[Topic]):

@@ -1,7 +1,8 @@
 """One run of process_bag: `process_bag()` checks the options, prepares the output
-directory, loads the model into a runner (`workers`) and makes one pass over the bag
-(`_BagRun`: copies every message, feeds the depth frames to the runner, writes outputs and
-diagnostics in input order); then results.npz (`save_results`) and summary.json."""
+directory, loads the model into a runner (`workers`, `ray_runner`; or takes the one a
+batch shares) and makes one pass over the bag (`_BagRun`: copies every message, feeds the
+depth frames to the runner, writes outputs, mesh files and diagnostics in input order);
+then results.npz (`save_results`) and summary.json, with the work of each worker."""
 from __future__ import annotations
 
 import json
@@ -22,7 +23,7 @@ from smpl_depth_ros.offline.bagread import BagInput, Topic, _storage_files, sele
 from smpl_depth_ros.offline.errors import BagReadError, InterruptedBeforeStart, ProcessBagError
 from smpl_depth_ros.offline.params import NODE_OPTIONS
 from smpl_depth_ros.offline.workers import (OUTPUTS, Job, Outcome, OutputOptions,
-                                            _InlineRunner, _PoolRunner)
+                                            SharedRunner, make_runner, peak_rss_mb)
 from smpl_depth_ros.stamps import stamp_to_ns
 from smpl_depth_ros.types import InputError
 
@@ -75,9 +76,6 @@ class _Progress:
             self.bar.close()
 
 
-def _peak_rss_mb(who=resource.RUSAGE_SELF) -> float:
-    kb = resource.getrusage(who).ru_maxrss  # kilobytes on Linux, bytes on macOS
-    return round(kb / (1024 * 1024 if sys.platform == 'darwin' else 1024), 1)
 
 
 def _prepare_output_dir(out: Path, inputs: Path, overwrite: bool, export_meshes: bool = False,
@@ -113,7 +111,8 @@ def process_bag(bag: str | Path, out_dir: str | Path, *, config: PipelineConfig 
                 info_topic: str | None = None, storage: str = 'mcap', compress: bool = False,
                 export_meshes: str | None = None, workers: int = 1, chunk_size: int = 32,
                 overwrite: bool = False, output_ns: str = DEFAULT_NS, progress: bool = True,
-                log: Callable[[str], None] | None = None, reconstructor=None
+                log: Callable[[str], None] | None = None, reconstructor=None,
+                ray: str | None = None, shared: SharedRunner | None = None
                 ) -> dict[str, Any]:
     """Process every depth frame of `bag` into `out_dir` (see the module docstring).
 
@@ -126,13 +125,17 @@ def process_bag(bag: str | Path, out_dir: str | Path, *, config: PipelineConfig 
         depth_topic, info_topic: None = auto-detect.
         storage: output bag storage, 'mcap' or 'sqlite3'; compress: zstd chunks (MCAP).
         export_meshes: None or 'ply' | 'obj' | 'glb'.
-        workers: processes (1 = this process, tracking over the whole bag).
+        workers: processes (1 = this process, tracking over the whole bag), or Ray actors.
         chunk_size: frames per worker task (tracking restarts at each chunk).
         output_ns: namespace of the output topics (the node's '~').
         progress: show progress (tqdm on a TTY, else log lines).
         log: where messages go (default: stderr).
         reconstructor: an already loaded `pipeline.Reconstructor` to use instead of loading
             one (workers=1 only; it gets `config`, except the device it was built for).
+        ray: None, or run the workers on Ray: '' a local Ray (started and shut down
+            here), else the address of a running cluster ('HOST:6379').
+        shared: the runner of a batch of bags (made by the first run, kept open after
+            each run; the caller closes it). None: a runner for this run alone.
 
     Returns:
         The summary dict (also in out_dir/summary.json). A damaged bag sets 'error' (and
@@ -152,6 +155,9 @@ def process_bag(bag: str | Path, out_dir: str | Path, *, config: PipelineConfig 
         raise ProcessBagError('--workers must be >= 1')
     if compress and storage != 'mcap':
         raise ProcessBagError('--compress needs --storage mcap')
+    if ray is not None:
+        from smpl_depth_ros.offline.ray_runner import check_ray
+        check_ray()
     output_ns = '/' + output_ns.strip('/')
     bag, out_dir = Path(bag), Path(out_dir)
     t_start = time.perf_counter()
@@ -174,17 +180,23 @@ def process_bag(bag: str | Path, out_dir: str | Path, *, config: PipelineConfig 
         mesh_dir = out_dir / 'meshes'
         if export_meshes:
             mesh_dir.mkdir()
-        opts = OutputOptions(**opts_d, export_meshes=export_meshes, mesh_dir=str(mesh_dir))
+        opts = OutputOptions(**opts_d, export_meshes=export_meshes)
         n_depth = sum(t.count for t in src.topics if t.topic == depth_topic) if all(
             t.count is not None for t in src.topics if t.topic == depth_topic) else None
         t_load = time.perf_counter()
         try:
             # The message inside: a Ctrl-C as soon as it is out counts as during loading.
+            where = '' if ray is None else f' on Ray at {ray}' if ray else ' on a local Ray'
             log(f"depth '{depth_topic}' ({n_depth if n_depth is not None else '?'} frames), "
-                f"camera_info '{info_topic}'; loading the model on {config.device} "
-                f'({workers} worker{"s" if workers > 1 else ""})')
-            runner = (_InlineRunner(config, opts, reconstructor) if workers == 1 else
-                      _PoolRunner(config, opts, workers, chunk_size))
+                f"camera_info '{info_topic}'; " + (
+                    'the model is loaded' if shared is not None and shared.runner else
+                    f'loading the model on {config.device}') +
+                f' ({workers} worker{"s" if workers > 1 else ""}{where})')
+
+            def make():
+                return make_runner(config, opts, workers, chunk_size, ray, reconstructor, log)
+            runner = shared.get(make) if shared is not None else make()
+            runner.stats.clear()
         except KeyboardInterrupt:
             # Ctrl-C (or SIGTERM) while the model loads: nothing was processed; leave no
             # empty output folder behind.
@@ -196,12 +208,18 @@ def process_bag(bag: str | Path, out_dir: str | Path, *, config: PipelineConfig 
         load_s = time.perf_counter() - t_load
         try:
             run = _BagRun(src, out_dir / 'bag', storage, compress, runner, config,
-                          depth_topic, info_topic, out_topics, progress, log, n_depth)
-        except BaseException:
-            runner.close()
+                          depth_topic, info_topic, out_topics, progress, log, n_depth,
+                          mesh_dir if export_meshes else None, keep_runner=shared is not None)
+            t_loop = time.perf_counter()
+            run.run()
+        except BaseException:  # a runner in an unknown state is not used again
+            if shared is not None:
+                shared.discard(interrupted=True)
+            else:
+                runner.close()
             raise
-        t_loop = time.perf_counter()
-        run.run()
+        if shared is not None and run.interrupted:
+            shared.discard(interrupted=True)
         loop_s = time.perf_counter() - t_loop
 
     rows = run.rows
@@ -212,6 +230,8 @@ def process_bag(bag: str | Path, out_dir: str | Path, *, config: PipelineConfig 
     mean_t = {k: round(float(np.mean([o.timings_ms.get(k, np.nan) for o in ok])), 2)
               for k in TIMING_NAMES} if ok else {}
     error = run.error
+    per_worker = runner.stats.summary()
+    peaks = [w['peak_rss_mb'] for w in per_worker.values() if 'peak_rss_mb' in w]
     summary = {
         'input': str(bag), 'output_dir': str(out_dir), 'output_bag': str(out_dir / 'bag'),
         'storage': storage, 'depth_topic': depth_topic, 'info_topic': info_topic,
@@ -225,8 +245,9 @@ def process_bag(bag: str | Path, out_dir: str | Path, *, config: PipelineConfig 
         'fps': round(len(rows) / loop_s, 3) if loop_s > 0 else None,
         'processing_s': round(loop_s, 2), 'load_s': round(load_s, 2),
         'wall_s': round(time.perf_counter() - t_start, 2),
-        'peak_rss_mb': _peak_rss_mb(),
-        'peak_rss_workers_mb': _peak_rss_mb(resource.RUSAGE_CHILDREN) if workers > 1 else None,
+        'peak_rss_mb': peak_rss_mb(),
+        'peak_rss_workers_mb': (max(peaks, default=None) if ray is not None else
+                                peak_rss_mb(resource.RUSAGE_CHILDREN) if workers > 1 else None),
         'workers': workers, 'device': runner.info['device'], 'body': runner.info['body'],
         'tracking': config.tracking,
         'messages_written': dict(sorted(run.n_written.items())),
@@ -238,8 +259,13 @@ def process_bag(bag: str | Path, out_dir: str | Path, *, config: PipelineConfig 
         'error_file': error.path if error else None,
         'error_position': error.position if error else None,
         'interrupted': run.interrupted,
+        'ray': None if ray is None else ray or 'local',
+        'per_worker': per_worker,
     }
     assert summary['frames_read'] == summary['processed'] + summary['skipped_total']
+    if workers > 1 or ray is not None:
+        for line in runner.stats.lines():
+            log(line)
     (out_dir / 'summary.json').write_text(json.dumps(summary, indent=2) + '\n')
     return summary
 
@@ -251,11 +277,13 @@ class _BagRun:
 
     def __init__(self, src: BagInput, bag_out: Path, storage: str, compress: bool, runner,
                  config: PipelineConfig, depth_topic: str, info_topic: str,
-                 out_topics: dict[str, str], progress: bool, log, n_depth: int | None):
+                 out_topics: dict[str, str], progress: bool, log, n_depth: int | None,
+                 mesh_dir: Path | None = None, keep_runner: bool = False):
         from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
 
         from smpl_depth_ros.ros import adapters as A
         self.A, self.src, self.runner, self.config, self.log = A, src, runner, config, log
+        self.mesh_dir, self.keep_runner = mesh_dir, keep_runner  # keep: a batch's runner
         self.info = runner.info
         self.depth_topic, self.info_topic, self.out_topics = depth_topic, info_topic, out_topics
         self.factory = A.rosbags_factory()
@@ -346,7 +374,7 @@ class _BagRun:
                     mcap_write_chunk_crcs(f)
 
     def _close_runner(self, interrupted: bool = False):
-        if self.runner is not None:
+        if self.runner is not None and (interrupted or not self.keep_runner):
             runner, self.runner = self.runner, None
             try:
                 runner.close(interrupted)
@@ -461,10 +489,25 @@ class _BagRun:
         self.writer.write(self.conn_diag, t_bag, bytes(self.jazzy.serialize_cdr(msg, DIAG_T)))
         self.n_written[DIAGNOSTICS_TOPIC] += 1
 
+    def _write_meshes(self, o: Outcome):
+        """The frame's mesh files; a frame whose files cannot be written (e.g. a full
+        disk) is not written at all ('internal')."""
+        try:
+            for name, data in o.meshes:
+                path = self.mesh_dir / name
+                path.write_bytes(data)
+                o.mesh_files.append(str(path))
+        except Exception as e:  # noqa: BLE001
+            o.status, o.message = 'internal', f'writing outputs: {type(e).__name__}: {e}'
+            o.outputs, o.params = [], None
+        o.meshes = []
+
     def _emit(self, o: Outcome, t_bag: int):
         """Write one frame's outputs (its input's bag time) and diagnostics, in order: a
         WARN entry per skipped frame, a processing summary per second of bag time."""
         A = self.A
+        if o.meshes:
+            self._write_meshes(o)
         for key, data in o.outputs:
             self.writer.write(self.conn_out[key], t_bag, data)
             self.n_written[self.out_topics[key]] += 1

@@ -14,6 +14,12 @@
     benchmark node BAG [--frames 2000] [--rate 30] [--json out.json]
         A `reconstructor` subprocess fed at 30 Hz over loopback DDS (localhost discovery,
         private domain): output rate, stamp-to-output latency p50/p95, drops, RSS growth.
+
+    benchmark ray BAG [--workers 2] [--chunk-size 32] [--json out.json]
+        process_bag on the same bag with `--workers N` (process pool) and with `--ray`
+        (N actors on a local Ray), one after the other: throughput (frames/s), start-up
+        (model loading, and Ray's own start), wall time, the ratio, and whether the
+        results are the same.
 """
 from __future__ import annotations
 
@@ -269,6 +275,34 @@ def bench_node(args) -> dict:
                             dropped=k - a) for k, m, a in trace])
 
 
+def bench_ray(args) -> dict:
+    """process_bag with the process pool, then with Ray, on the same bag and chunks."""
+    import tempfile
+    from pathlib import Path
+
+    from smpl_depth_ros.config import PipelineConfig
+    from smpl_depth_ros.offline import process_bag
+    runs = {}
+    with tempfile.TemporaryDirectory(prefix='bench_ray_') as tmp:
+        for name, ray in (('process_pool', None), ('ray', '')):
+            s = process_bag(args.bag, Path(tmp) / name, workers=args.workers,
+                            chunk_size=args.chunk_size, ray=ray, progress=False,
+                            log=lambda m: None, config=PipelineConfig(device=args.device))
+            runs[name] = dict(frames_per_s=s['fps'], startup_s=s['load_s'],
+                              processing_s=s['processing_s'], wall_s=s['wall_s'],
+                              frames_read=s['frames_read'], processed=s['processed'],
+                              per_worker=s['per_worker'])
+        a, b = (np.load(Path(tmp) / n / 'results.npz') for n in runs)
+        same = all(np.array_equal(a[k], b[k], equal_nan=a[k].dtype.kind == 'f')
+                   for k in a.files if k != 'timings_ms')
+    pool, ray = runs['process_pool'], runs['ray']
+    return dict(bag=str(args.bag), workers=args.workers, chunk_size=args.chunk_size,
+                device=args.device, cpus=os.cpu_count(), process_pool=pool, ray=ray,
+                ray_vs_pool_throughput=(round(ray['frames_per_s'] / pool['frames_per_s'], 3)
+                                        if pool['frames_per_s'] else None),
+                same_results=bool(same))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog='benchmark', description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -295,10 +329,16 @@ def main(argv=None) -> int:
     nd.add_argument('-p', '--param', action='append', default=[], metavar='NAME:=VALUE',
                     help='extra node parameter (repeatable), e.g. -p flip_tta:=false')
     nd.add_argument('--json', default=None)
+    rb = sub.add_parser('ray', help='process_bag: process pool against Ray actors')
+    rb.add_argument('bag', help='a bag for process_bag (e.g. smpl_depth_ros/data/sample_bag)')
+    rb.add_argument('--workers', type=int, default=2)
+    rb.add_argument('--chunk-size', type=int, default=32)
+    rb.add_argument('--device', default='cpu', choices=['auto', 'cpu', 'cuda'])
+    rb.add_argument('--json', default=None)
     args = ap.parse_args(argv)
     command = ' '.join(['benchmark', *(sys.argv[1:] if argv is None else argv)])
-    if args.cmd in ('net', 'node'):
-        out = bench_net(args) if args.cmd == 'net' else bench_node(args)
+    if args.cmd in ('net', 'node', 'ray'):
+        out = {'net': bench_net, 'node': bench_node, 'ray': bench_ray}[args.cmd](args)
         write_json(out, args.json, command)
         return 0
     out = bench_fit(args)
