@@ -290,17 +290,20 @@ def bench_ray(args) -> dict:
                             log=lambda m: None, config=PipelineConfig(device=args.device))
             runs[name] = dict(frames_per_s=s['fps'], startup_s=s['load_s'],
                               processing_s=s['processing_s'], wall_s=s['wall_s'],
+                              driver_cpu_s=s['driver_cpu_s'],
                               frames_read=s['frames_read'], processed=s['processed'],
                               per_worker=s['per_worker'])
         a, b = (np.load(Path(tmp) / n / 'results.npz') for n in runs)
-        same = all(np.array_equal(a[k], b[k], equal_nan=a[k].dtype.kind == 'f')
-                   for k in a.files if k != 'timings_ms')
+        differ = {k: (float(np.nanmax(np.abs(a[k] - b[k]))) if a[k].dtype.kind == 'f'
+                      and a[k].shape == b[k].shape and a[k].size else 'differs')
+                  for k in a.files if k != 'timings_ms'
+                  and not np.array_equal(a[k], b[k], equal_nan=a[k].dtype.kind == 'f')}
     pool, ray = runs['process_pool'], runs['ray']
     return dict(bag=str(args.bag), workers=args.workers, chunk_size=args.chunk_size,
                 device=args.device, cpus=os.cpu_count(), process_pool=pool, ray=ray,
                 ray_vs_pool_throughput=(round(ray['frames_per_s'] / pool['frames_per_s'], 3)
                                         if pool['frames_per_s'] else None),
-                same_results=bool(same))
+                same_results=not differ, differences=differ)
 
 
 def main(argv=None) -> int:
