@@ -277,14 +277,18 @@ class Spinner:
 
 @pytest.fixture
 def harness(rclpy_context, core, scene):
-    """make(**params) -> (node, tester); the node runs in-process under namespace /ip."""
+    """make(tune=True, **params) -> (node, tester); the node runs in-process under
+    namespace /ip, with the process settings the console script gives it (tune_process:
+    torch threads, gc.freeze) unless `tune` is False."""
     made = []
     spinner = Spinner(rclpy_context)
 
-    def make(**params):
+    def make(tune: bool = True, **params):
         overrides = [Parameter(k, value=v) for k, v in params.items()]
         node = ReconstructorNode(reconstructor_factory=lambda cfg: core, context=rclpy_context,
                                  namespace='/ip', parameter_overrides=overrides)
+        if tune:
+            node.tune_process()
         tester = Probe(rclpy_context, '/ip')
         tester.infos.append(scene.info_msg())
         spinner.add(node)
@@ -635,7 +639,7 @@ def test_runtime_parameter_validation(harness, core, scene):
     # Constructing the node changes nothing process-wide (tune_process does, in main).
     import gc
     threads, frozen = torch.get_num_threads(), gc.get_freeze_count()
-    node, tester = harness(**{'fit.iterations': 3, 'cpu_threads': threads + 1})
+    node, tester = harness(tune=False, **{'fit.iterations': 3, 'cpu_threads': threads + 1})
     assert (torch.get_num_threads(), gc.get_freeze_count()) == (threads, frozen)
     assert node.unknown_parameters == ['fit.iterations']
     assert node.get_parameter('advanced.fit.iterations').value == FitConfig().iterations
