@@ -470,35 +470,26 @@ def select_topics(topics: list[Topic], depth_topic: str | None, info_topic: str 
     images = [(k, n) for k, (mt, n) in types.items() if mt == IMAGE_T and
               not (exclude_prefix and k.startswith(exclude_prefix + '/'))]
     infos = [(k, n) for k, (mt, n) in types.items() if mt == INFO_T]
-    if depth_topic is None:
-        cands = images
-        if len(cands) > 1:
-            cands = [c for c in images if 'depth' in c[0].lower()]
-        if len(cands) != 1:
-            raise ProcessBagError(
-                f'cannot choose the depth topic: {len(images)} sensor_msgs/msg/Image topics '
-                f'({listing(images)}); pass --depth-topic')
-        depth_topic = cands[0][0]
-    elif depth_topic not in types:
-        raise ProcessBagError(f'--depth-topic {depth_topic} is not in the bag; Image topics: '
-                              f'{listing(images)}')
-    elif types[depth_topic][0] != IMAGE_T:
-        raise ProcessBagError(f'--depth-topic {depth_topic} is {types[depth_topic][0]}, '
-                              f'not {IMAGE_T}')
-    if info_topic is None:
-        cands = infos
-        if len(cands) > 1:
-            ns = depth_topic.rsplit('/', 1)[0]
-            cands = [c for c in infos if c[0].rsplit('/', 1)[0] == ns]
-        if len(cands) != 1:
-            raise ProcessBagError(
-                f'cannot choose the camera_info topic: {len(infos)} sensor_msgs/msg/CameraInfo '
-                f'topics ({listing(infos)}); pass --info-topic')
-        info_topic = cands[0][0]
-    elif info_topic not in types:
-        raise ProcessBagError(f'--info-topic {info_topic} is not in the bag; CameraInfo '
-                              f'topics: {listing(infos)}')
-    elif types[info_topic][0] != INFO_T:
-        raise ProcessBagError(f'--info-topic {info_topic} is {types[info_topic][0]}, '
-                              f'not {INFO_T}')
+    def choose(topic, cands, narrow, what, flag, short, msgtype):
+        if topic is None:
+            picked = narrow(cands) if len(cands) > 1 else cands
+            if len(picked) != 1:
+                raise ProcessBagError(
+                    f'cannot choose the {what} topic: {len(cands)} {msgtype} topics '
+                    f'({listing(cands)}); pass {flag}')
+            return picked[0][0]
+        if topic not in types:
+            raise ProcessBagError(f'{flag} {topic} is not in the bag; {short} topics: '
+                                  f'{listing(cands)}')
+        if types[topic][0] != msgtype:
+            raise ProcessBagError(f'{flag} {topic} is {types[topic][0]}, not {msgtype}')
+        return topic
+
+    depth_topic = choose(depth_topic, images,
+                         lambda cs: [c for c in cs if 'depth' in c[0].lower()],
+                         'depth', '--depth-topic', 'Image', IMAGE_T)
+    ns = depth_topic.rsplit('/', 1)[0]
+    info_topic = choose(info_topic, infos,
+                        lambda cs: [c for c in cs if c[0].rsplit('/', 1)[0] == ns],
+                        'camera_info', '--info-topic', 'CameraInfo', INFO_T)
     return depth_topic, info_topic
