@@ -226,8 +226,7 @@ class ReconstructorNode(Node):
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
         new = dict(self._values)
         for p in params:
-            spec = P.SCHEMA.get(p.name[len(P.ADVANCED):] if p.name.startswith(P.ADVANCED)
-                                else p.name)
+            spec = P.lookup(p.name)
             if spec is None or spec.ros_name != p.name:  # use_sim_time, ...
                 continue
             if spec.restart and p.value != self._values[spec.name]:
