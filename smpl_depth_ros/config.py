@@ -135,6 +135,9 @@ class PipelineConfig:
                              range=(0.0, 100.0))
     flip_tta: bool = param(False, 'run the network on each crop and its mirror image and '
                            'average (twice the network time; better segmentation and fits)')
+    second_network: bool = param(True, 'when a body was seen but no fit explained it, retry '
+                                 "the frame's candidates with the other shipped network (the "
+                                 'broad or the original one; not with weights_path)', **_A)
     max_persons: int = param(1, 'persons reconstructed per frame (most central first)',
                              range=(1, 100))
     min_person_pixels: int = param(400, 'smallest person blob (pixels)',
@@ -239,6 +242,7 @@ LM_FREEZE = 1e3  # Hessian diagonal that holds an unsupported joint (data terms 
 # -- person-finding constants --
 # Which of the candidates net.preprocess.find_persons returns the pipeline takes as persons.
 EXTRA_CANDIDATES = 2  # candidates looked for beyond max_persons (some may be no person)
+SECOND_LOOK_CANDIDATES = 6  # ... and when none of those was a person (pipeline.process)
 MIN_BODY_PIXELS = 60  # network-foreground crop pixels needed to attempt a fit
 MIN_BODY_SHARE = 0.4  # a person: the network sees a body in this share of its blob's pixels
 MIN_PART_SHARE = 0.02  # body_score: a part counts when it covers this share of the body

@@ -14,7 +14,8 @@ import torch
 
 from smpl_depth_ros.body import load_body_model
 from smpl_depth_ros.config import (EXTRA_CANDIDATES, MAX_CLAIMED, MIN_BEHIND, MIN_BODY_PIXELS,
-                                   MIN_BODY_SHARE, MIN_PART_SHARE, PipelineConfig)
+                                   MIN_BODY_SHARE, MIN_PART_SHARE, SECOND_LOOK_CANDIDATES,
+                                   PipelineConfig)
 from smpl_depth_ros.fit import Fitter, backproject  # noqa: F401  (re-exported)
 from smpl_depth_ros.fit.freespace import FreeSpace, supporting_planes
 from smpl_depth_ros.net.infer import CorrespondenceNet, broad_weights
@@ -178,6 +179,14 @@ class Reconstructor:
         return self._net
 
     @property
+    def other_net(self) -> CorrespondenceNet | None:
+        """The shipped network `net` is not (None with a given `weights_path`, or a
+        backend with one network): `second_network`'s fallback."""
+        if self._broad_net is None:
+            return None
+        return self._net if self.net is self._broad_net else self._broad_net
+
+    @property
     def noise(self) -> NoiseModel:
         """The sensor noise model in use (a preset's at the last frame's focal length, the
         'auto' estimate so far, or the zero model for 'none')."""
@@ -276,15 +285,26 @@ class Reconstructor:
                                 network_full, rejected, noise, seen)
         if not persons:
             # Second look: none of the candidates was a person, but a person standing
-            # against a wall may be hidden in a blob too big for one: peel its planes.
+            # against a wall may be hidden in a blob too big for one: peel its planes;
+            # and the person may be a less central blob than those tried: take more.
             tp = time.perf_counter()
             again = find_persons(d, K, cfg.depth_min, cfg.depth_max, cfg.min_person_pixels,
-                                 max_persons=max(cfg.max_persons, 1) + EXTRA_CANDIDATES, peel=True,
-                                 noise=excess)
+                                 max_persons=max(cfg.max_persons, 1) + SECOND_LOOK_CANDIDATES,
+                                 peel=True, noise=excess)
+            new = [c for c in again if not any(c.mask.sum() == o.mask.sum()
+                                               and np.array_equal(c.mask, o.mask)
+                                               for o in crops)]
             timings['preprocess'] += (time.perf_counter() - tp) * 1e3
-            if [int(c.mask.sum()) for c in again] != [int(c.mask.sum()) for c in crops]:
-                persons = self._persons(d, K, again, stamp_ns, timings, labels_full,
+            if new:
+                persons = self._persons(d, K, list(new), stamp_ns, timings, labels_full,
                                         network_full, rejected, noise, seen)
+                crops = crops + new
+        if not persons and rejected and cfg.second_network and self.other_net is not None:
+            # Third look: a body was seen but no fit explained it. The other shipped
+            # network (broad poses and every sensor class, or the original) gets the same
+            # candidates: a frame one network fails on, the other often gets.
+            persons = self._persons(d, K, list(crops), stamp_ns, timings, labels_full,
+                                    network_full, rejected, noise, seen, net=self.other_net)
         self.tracker.forget_fits(keep=seen)  # warm starts come from the previous frame only
         if not persons:
             if rejected:
@@ -308,15 +328,18 @@ class Reconstructor:
 
     def _persons(self, d, K, crops, stamp_ns, timings, labels_full, network_full,
                  rejected: list, noise: NoiseModel | None = None,
-                 seen: set | None = None) -> list[PersonResult]:
+                 seen: set | None = None, net: CorrespondenceNet | None = None
+                 ) -> list[PersonResult]:
         """Run the network on the candidates and fit them, until max_persons are found
         (see `process`); writes their labels into labels_full (as `segmentation` says)
         and the network's into network_full, and appends (median residual, limit) of
         every fit rejected as no person to `rejected`. `noise`: the sensor noise model;
         each candidate's noise-dependent thresholds are widened for the excess noise at
         its median depth (sensor_noise). Each candidate is matched to its track (tracking)
-        before it is fitted; `seen` collects the ids of the tracks of accepted persons."""
+        before it is fitted; `seen` collects the ids of the tracks of accepted persons.
+        `net`: the network to use (default `net`)."""
         cfg = self.config
+        net = net or self.net
         seen = set() if seen is None else seen
         t = self._clock(stamp_ns)
         persons = []
@@ -326,7 +349,7 @@ class Reconstructor:
         x, lab, coords = [], [], []  # network inputs and outputs, per candidate so far
         plain = {}  # candidate -> its plain network pass, when the mirrored one is pending
         if len(crops) > cfg.max_persons:
-            crops, x, lab, coords, plain = self._rank_candidates(d, crops, timings)
+            crops, x, lab, coords, plain = self._rank_candidates(d, crops, timings, net)
         track_of = dict(zip(map(id, crops), self.tracker.match(
             np.array([candidate_centre(c, K) for c in crops]).reshape(-1, 3),
             [c.mask for c in crops], t)))
@@ -339,7 +362,7 @@ class Reconstructor:
                 tn = time.perf_counter()
                 batch = crops[i:i + cfg.max_persons - len(persons)]
                 xb = np.stack([network_input(crop_depth(d, c), c.median_depth) for c in batch])
-                lb, cb = self.net.predict(xb, flip_tta=cfg.flip_tta)
+                lb, cb = net.predict(xb, flip_tta=cfg.flip_tta)
                 x.extend(xb)
                 lab.extend(lb)
                 coords.extend(cb)
@@ -354,8 +377,8 @@ class Reconstructor:
                 continue
             if i in plain:  # ranked on the plain pass: add the mirrored one (flip_tta)
                 tn = time.perf_counter()
-                (lb,), (cb,) = self.net.combine(
-                    plain.pop(i), self.net.raw(x[i][None], mirrored=True))
+                (lb,), (cb,) = net.combine(
+                    plain.pop(i), net.raw(x[i][None], mirrored=True))
                 lab[i], coords[i] = lb, cb
                 timings['network'] += (time.perf_counter() - tn) * 1e3
             fg = (lab[i] > 0) & (x[i][1] > 0)
@@ -367,7 +390,7 @@ class Reconstructor:
             fitter = self.fitter.for_noise(excess)
             reject = scaled_reject_residual(cfg.reject_residual_m, excess)
             tc = time.perf_counter()
-            vids = self.net.lookup(lab[i], coords[i], fg)
+            vids = net.lookup(lab[i], coords[i], fg)
             rr, cc, _ = crop.sample_indices(d.shape)
             r, c = rr[fg], cc[fg]
             if persons and np.mean(claimed[r, c]) > MAX_CLAIMED:
@@ -407,7 +430,7 @@ class Reconstructor:
                     # 0.045): retry the candidate on the plain pass, right away.
                     plain_retried.add(id(crop))
                     tn = time.perf_counter()
-                    (lb,), (cb,) = self.net.predict(x[i][None], flip_tta=False)
+                    (lb,), (cb,) = net.predict(x[i][None], flip_tta=False)
                     timings['network'] += (time.perf_counter() - tn) * 1e3
                     for seq, item in ((crops, crop), (x, x[i]), (lab, lb), (coords, cb)):
                         seq.insert(i + 1, item)
@@ -461,7 +484,7 @@ class Reconstructor:
                 score=body_score(crop, x[i][1] > 0, lab[i], d.shape)))
         return persons
 
-    def _rank_candidates(self, d, crops, timings):
+    def _rank_candidates(self, d, crops, timings, net):
         """Order person candidates when there are more than persons wanted.
 
         While a person is tracked, the candidate that covers most of its previous pixels
@@ -488,10 +511,10 @@ class Reconstructor:
         x = np.stack([network_input(crop_depth(d, c), c.median_depth) for c in crops])
         tta = self.config.flip_tta
         if tta:  # keep the plain pass's probabilities for the mirrored one added later
-            probs, rc = self.net.raw(x)
-            lab, coords = self.net.combine((probs, rc))
+            probs, rc = net.raw(x)
+            lab, coords = net.combine((probs, rc))
         else:
-            lab, coords = self.net.predict(x, flip_tta=False)
+            lab, coords = net.predict(x, flip_tta=False)
         timings['network'] += (time.perf_counter() - tn) * 1e3
         score = [-body_score(c, xi[1] > 0, li, d.shape) for c, xi, li in zip(crops, x, lab)]
         # A blob seen through a gap of a nearer candidate goes after every other one.

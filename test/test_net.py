@@ -325,6 +325,56 @@ def test_peel_finds_a_person_at_a_wall_beside_a_person_sized_box():
     assert sorted(round(c.median_depth, 1) for c in both) == [2.5, 4.0]
 
 
+def test_a_person_beside_a_wide_low_box_at_the_same_depth_is_a_candidate():
+    """A box a hand's width beside a person, at the same depth and smaller in pixels, is
+    merged as a small piece; the whole is too wide for one person, so the person's
+    component alone is the candidate (it used to be dropped with the box)."""
+    K = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]])
+    z = 3.0
+    d = np.zeros((480, 640), np.float32)
+    px = lambda m: int(round(m * 525.0 / z))  # noqa: E731 - metres at z to pixels
+    top, left = 100, 200
+    d[top:top + px(1.7), left:left + px(0.5)] = z  # the person: 0.5 m x 1.7 m
+    b0 = left + px(0.5) + px(0.08)
+    d[top + px(1.3):top + px(1.7), b0:b0 + px(1.2)] = z + 0.05  # the box: 1.2 m x 0.4 m
+    (c,) = find_persons(d, K, 0.5, 6.0, min_pixels=300, max_persons=3)
+    assert c.mask[top + 10, left + 10] and not c.mask[top + px(1.5), b0 + px(0.6)]
+
+
+def test_a_strip_of_floor_is_floor_on_the_second_look_only():
+    """A floor seen only 0.7 m deep (a wall a metre behind a person) is not scene-sized
+    for the first pass, but with the second look's `strip` rule it is; a wall-like plane
+    of the same size is not, and neither is a floor-like patch narrower than a person
+    could be wide."""
+    from smpl_depth_ros.net.preprocess import FLOOR_STRIP_M, _scene_sized
+    rng = np.random.default_rng(0)
+    floor = np.stack([rng.uniform(-1.0, 1.0, 3000), np.full(3000, 0.9),
+                      rng.uniform(1.8, 2.5, 3000)], 1)
+    up = np.array([0.0, -1.0, 0.0])
+    assert not _scene_sized(floor, up, 1.0)
+    assert _scene_sized(floor, up, 1.0, FLOOR_STRIP_M)
+    wall = floor[:, [0, 2, 1]]  # the same extents, standing
+    assert not _scene_sized(wall, np.array([0.0, 0.0, -1.0]), 1.0, FLOOR_STRIP_M)
+    narrow = floor * [0.7, 1, 1]  # 1.4 m wide
+    assert not _scene_sized(narrow, up, 1.0, FLOOR_STRIP_M)
+
+
+def test_stored_person_near_a_wall_on_a_strip_of_floor_is_found():
+    """test/data/near_wall_kinect_v1.npz: a person bending forward 1.7 m from a Kinect
+    v1, a wall 0.7 m behind, the floor between seen only 0.76 m deep: floor, person and
+    wall are one blob. The second look peels the wall and, by the strip rule, the floor;
+    the person is found and fitted."""
+    from smpl_depth_ros.config import PipelineConfig
+    from smpl_depth_ros.pipeline import Reconstructor
+    f = np.load('test/data/near_wall_kinect_v1.npz')
+    depth = f['depth_mm'] / 1000.0
+    crops = find_persons(depth, f['K'], 0.5, 6.0, 400, max_persons=3)
+    assert crops and 1.5 < crops[0].median_depth < 2.1
+    p = Reconstructor(PipelineConfig(tracking=False, device='cpu')).process(
+        depth, f['K']).persons[0]
+    assert np.linalg.norm(p.vertices - f['vertices'], axis=1).mean() < 0.04
+
+
 def test_train_correspondence_runs_checkpoints_and_resumes(body, tmp_path):
     """The training command end to end on a tiny budget: weights, JSON log, validation
     PNG and checkpoint are written; --resume continues from the checkpoint's step; the

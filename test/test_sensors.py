@@ -323,3 +323,55 @@ def test_stored_far_stereo_frame_is_reconstructed():
     except InputError:
         worse = np.inf
     assert worse > 2 * err
+
+
+def test_a_pose_the_first_network_fails_on_is_reconstructed_by_the_second():
+    """test/data/broad_pose_kinect_v1.npz: kneeling with the arms overhead, 4.1-5.0 m from
+    a Kinect v1. Its frames go through the original network, whose fit no body explains;
+    `second_network` (the default) retries the candidates with the broad network."""
+    from smpl_depth_ros.config import PipelineConfig
+    from smpl_depth_ros.net.infer import broad_weights, default_weights
+    from smpl_depth_ros.pipeline import Reconstructor
+    from smpl_depth_ros.types import InputError
+    f = np.load('test/data/broad_pose_kinect_v1.npz')
+    depth = f['depth_mm'] / 1000.0
+    rec = Reconstructor(PipelineConfig(tracking=False, device='cpu'))
+    p = rec.process(depth, f['K']).persons[0]
+    err = np.linalg.norm(p.vertices - f['vertices'], axis=1).mean() * 1e3
+    assert err < 60.0, err
+    assert rec.net.path == default_weights('anny')
+    assert rec.other_net.path == broad_weights('anny')
+    once = Reconstructor(PipelineConfig(tracking=False, device='cpu', second_network=False),
+                         body=rec.body)
+    with pytest.raises(InputError, match='no body fit explained them'):
+        once.process(depth, f['K'])
+    # with given weights there is no second network
+    given = Reconstructor(PipelineConfig(tracking=False, device='cpu',
+                                         weights_path=default_weights('anny')), body=rec.body)
+    assert given.other_net is None
+    with pytest.raises(InputError):
+        given.process(depth, f['K'])
+
+
+def test_a_person_less_central_than_three_scene_pieces_is_found():
+    """test/data/off_centre_d435.npz: a D435 person at 3.2 m left of the image centre, a
+    box beside them at the same depth, wall pieces and boxes nearer the centre. The
+    person's blob merged with the box is too wide for one person, so the component
+    alone is the candidate; the first pass keeps the 3 most central candidates, none of
+    them the person, and the second look takes more."""
+    from smpl_depth_ros import pipeline
+    from smpl_depth_ros.config import PipelineConfig
+    from smpl_depth_ros.types import InputError
+    f = np.load('test/data/off_centre_d435.npz')
+    depth = f['depth_mm'] / 1000.0
+    cfg = PipelineConfig(tracking=False, device='cpu', sensor='realsense_d435')
+    rec = pipeline.Reconstructor(cfg)
+    p = rec.process(depth, f['K']).persons[0]
+    assert np.linalg.norm(p.vertices - f['vertices'], axis=1).mean() < 0.06
+    with pytest.raises(InputError):  # without the second look's extra candidates
+        orig = pipeline.SECOND_LOOK_CANDIDATES
+        try:
+            pipeline.SECOND_LOOK_CANDIDATES = pipeline.EXTRA_CANDIDATES
+            pipeline.Reconstructor(cfg, body=rec.body).process(depth, f['K'])
+        finally:
+            pipeline.SECOND_LOOK_CANDIDATES = orig

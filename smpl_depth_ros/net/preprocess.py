@@ -43,6 +43,8 @@ NEAR_RANGE = 1.0   # pixels further than this from the person's median depth are
 DETECT_WIDTH = 320  # person detection runs on the image decimated to about this width
 GROW_PX = 3         # a person mask reaches this many pixels past its blob ...
 GROW_DEPTH = 0.8    # ... at most this far from the person's median depth (metres)
+FLOOR_UP = 0.75     # a floor-like plane's normal: |its image-vertical component| above this
+FLOOR_STRIP_M = (0.5, 1.8)  # second look: a floor-like plane this deep and wide (m) is floor
 
 
 @dataclass
@@ -185,17 +187,24 @@ def pixel_points(rows, cols, z, K) -> np.ndarray:
     return np.stack([(cols - K[0, 2]) * z / K[0, 0], (rows - K[1, 2]) * z / K[1, 1], z], 1)
 
 
-def _scene_sized(q: np.ndarray, n: np.ndarray, min_extent: float) -> bool:
+def _scene_sized(q: np.ndarray, n: np.ndarray, min_extent: float,
+                 strip: tuple[float, float] | None = None) -> bool:
     """Whether plane inliers `q` (normal `n`) form a scene-sized plane (floor, wall): both
     in-plane extents > min_extent m (a person's torso is planar-ish too, but never that
     large), and filling that extent: a thin horizontal slice through several people at
-    one height is a few short segments, so >= 35 % of its 10 cm cells must be occupied."""
+    one height is a few short segments, so >= 35 % of its 10 cm cells must be occupied.
+    `strip` (short, long): a floor-like plane (normal within ~40 deg of the image's
+    vertical) also counts when its extents pass these instead: the strip of floor seen
+    between the camera's view and a wall a metre behind a person."""
     e1 = np.cross(n, [1.0, 0, 0] if abs(n[0]) < 0.9 else [0, 1.0, 0])
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(n, e1)
     u, v = q @ e1, q @ e2
     (lo_u, hi_u), (lo_v, hi_v) = np.percentile(u, (2, 98)), np.percentile(v, (2, 98))
-    if min(hi_u - lo_u, hi_v - lo_v) < min_extent:
+    short, long_ = sorted((hi_u - lo_u, hi_v - lo_v))
+    floor_strip = strip is not None and abs(n[1]) > FLOOR_UP and short >= strip[0] \
+        and long_ >= strip[1]
+    if short < min_extent and not floor_strip:
         return False
     cu = ((u - lo_u) / 0.1).astype(np.int64)
     cv = ((v - lo_v) / 0.1).astype(np.int64)
@@ -207,8 +216,9 @@ def _scene_sized(q: np.ndarray, n: np.ndarray, min_extent: float) -> bool:
 
 def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=2,
                    min_fraction=0.03, thresh=0.03, iters=1000, min_extent=1.0,
-                   min_up=0.75, sample=2000, presample=200, finalists=10,
-                   local_k=16, planes: list | None = None, noise=None) -> np.ndarray:
+                   min_up=FLOOR_UP, sample=2000, presample=200, finalists=10,
+                   local_k=16, planes: list | None = None, noise=None,
+                   strip: tuple[float, float] | None = None) -> np.ndarray:
     """Boolean mask of points that belong to none of the dominant planes.
 
     RANSAC over `iters` point triples per plane (half of them local: a point and two of
@@ -218,7 +228,7 @@ def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=2,
     removed are appended to `planes` (when given) as (4,) arrays (n, offset), n . x =
     offset, unit n towards the camera (the side the scene is seen from). `noise`: an
     optional excess noise e(z) (sensor_noise.NoiseModel.excess): a point's inlier band
-    is then thresh + 2 e(its depth).
+    is then thresh + 2 e(its depth). `strip`: see `_scene_sized`.
     """
     keep = np.ones(len(points), bool)
     if noise is not None and len(points):
@@ -284,7 +294,7 @@ def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=2,
             nb_, ob_ = nl, float(qs.mean(0) @ nl)
             near = np.abs(points @ nb_ - ob_) < thresh
             q = points[avail & near]
-        if not _scene_sized(q, nb_, min_extent):
+        if not _scene_sized(q, nb_, min_extent, strip):
             avail &= ~near  # look past it
             continue
         keep &= ~near
@@ -474,7 +484,11 @@ def _candidates(fg, depth, d, K, s, min_px, max_persons, depth_min, depth_max):
                    and _stacked(slices[k - 1], slices[j - 1])
                    and (g < 0.2 or (g < 0.5 and _upper_is_nearer(
                        (slices[k - 1], medians[k]), (slices[j - 1], medians[j]))))]
-        for group in ([k, *small, *stacked], [k, *small]) if stacked else ([k, *small],):
+        # Last, the component alone: a box or a piece of furniture beside a person at
+        # the same depth is merged as a small piece, and the whole is too wide for one.
+        groups = [[k, *small, *stacked]] if stacked else []
+        groups += [[k, *small], [k]] if len(small) else [[k]]
+        for group in groups:
             fit = _group_blob(group, lab, slices, d, n, grow, s, K)
             if fit is not None:
                 break
@@ -561,7 +575,7 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
                 0.0 if noise is None else 2 * float(noise(z)))
             on_plane = ~_remove_planes(pixel_points(rr * s, cc * s, d[rr, cc], K), rng,
                                        max_planes=3, min_up=-1.0, thresh=thresh,
-                                       planes=planes)
+                                       planes=planes, strip=FLOOR_STRIP_M)
             fg[rr[on_plane], cc[on_plane]] = False
             peeled = np.zeros_like(fg) if peeled is None else peeled
             peeled[rr[on_plane], cc[on_plane]] = True
