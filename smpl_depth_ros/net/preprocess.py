@@ -443,8 +443,11 @@ def _group_blob(group, lab, slices, d, n, grow, s, K):
     return blob, rr, cc, zz, r0, r1, c0, c1
 
 
-def _candidates(fg, depth, d, K, s, min_px, max_persons, depth_min, depth_max):
+def _candidates(fg, depth, d, K, s, min_px, max_persons, depth_min, depth_max,
+                alone: bool = False):
     """Person candidates among the connected components of `fg` (decimated image `d`).
+    `alone`: a component whose merged group is too big for a person is a candidate by
+    itself when it is person-sized (the second look's rule).
 
     Returns ([(distance to the image centre, Crop)], component labels, labels of the
     largest components that were not person-sized (at least 4 x min_px)).
@@ -484,10 +487,13 @@ def _candidates(fg, depth, d, K, s, min_px, max_persons, depth_min, depth_max):
                    and _stacked(slices[k - 1], slices[j - 1])
                    and (g < 0.2 or (g < 0.5 and _upper_is_nearer(
                        (slices[k - 1], medians[k]), (slices[j - 1], medians[j]))))]
-        # Last, the component alone: a box or a piece of furniture beside a person at
-        # the same depth is merged as a small piece, and the whole is too wide for one.
+        # With `alone`, last the component alone: a box or a piece of furniture beside
+        # a person at the same depth is merged as a small piece, and the whole is too
+        # wide for one. Only on the second look: in the first, it also takes parts of
+        # people as candidates before the whole (stereo frames of several people, whose
+        # invalid bands cut bodies into pieces, lost persons).
         groups = [[k, *small, *stacked]] if stacked else []
-        groups += [[k, *small], [k]] if len(small) else [[k]]
+        groups += [[k, *small], [k]] if alone and len(small) else [[k, *small]]
         for group in groups:
             fit = _group_blob(group, lab, slices, d, n, grow, s, K)
             if fit is not None:
@@ -526,9 +532,10 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
         depth: (H, W) float32 metres (0/NaN invalid).
         K: (3, 3) intrinsics.
         min_pixels: smallest candidate blob, in full-image pixels.
-        peel: peel planes off the blobs too big for a person even when other candidates
-            were found (by default only when none was): the second look of a frame whose
-            candidates all proved not to be persons (a box beside a person at a wall).
+        peel: the second look of a frame whose candidates all proved not to be persons:
+            peel planes off the blobs too big for a person even when other candidates
+            were found (by default only when none was: a box beside a person at a wall),
+            and take a component alone when its merged group is too big (`_candidates`).
         noise: optional excess sensor noise e(z) (sensor_noise.NoiseModel.excess): the
             depth-jump and plane-inlier thresholds widen with it (see those steps), and
             when it is above 0 at the frame's median depth, small holes are filled first
@@ -560,7 +567,7 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
     fg[valid] = keep
     edges = _depth_edges(depth, s, noise)
     crops, lab, rejected = _candidates(fg & ~edges, depth, d, K, s, min_px, max_persons,
-                                       depth_min, depth_max)
+                                       depth_min, depth_max, alone=peel)
     peeled = None  # decimated pixels of the planes peeled off (hidden from the network)
     if rejected and (peel or not crops):
         # A person within the depth-jump threshold of a wall (or on a floor the first
@@ -580,7 +587,7 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
             peeled = np.zeros_like(fg) if peeled is None else peeled
             peeled[rr[on_plane], cc[on_plane]] = True
         crops, _, _ = _candidates(fg & ~edges, depth, d, K, s, min_px, max_persons,
-                                  depth_min, depth_max)
+                                  depth_min, depth_max, alone=peel)
     crops.sort(key=lambda t: t[0])
     crops = [c for _, c in crops]
     _mark_behind(crops)
