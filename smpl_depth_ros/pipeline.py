@@ -291,9 +291,10 @@ class Reconstructor:
             again = find_persons(d, K, cfg.depth_min, cfg.depth_max, cfg.min_person_pixels,
                                  max_persons=max(cfg.max_persons, 1) + SECOND_LOOK_CANDIDATES,
                                  peel=True, noise=excess)
-            new = [c for c in again if not any(c.mask.sum() == o.mask.sum()
-                                               and np.array_equal(c.mask, o.mask)
-                                               for o in crops)]
+            tried = [(int(o.mask.sum()), o.mask) for o in crops]
+            sizes = [int(c.mask.sum()) for c in again]
+            new = [c for c, n in zip(again, sizes) if not any(
+                n == k and np.array_equal(c.mask, m) for k, m in tried)]
             timings['preprocess'] += (time.perf_counter() - tp) * 1e3
             if new:
                 persons = self._persons(d, K, list(new), stamp_ns, timings, labels_full,

@@ -82,6 +82,18 @@ def test_benchmark_net_writes_json(tmp_path):
             assert res[kind][key] > 0, (kind, key)
 
 
+def test_benchmark_empty_times_frames_with_nobody_in_them(tmp_path):
+    """`benchmark empty`: sweep subjects blanked out, timed with and without the last
+    look; the frames are rendered, so they have a room with blobs in it."""
+    out = tmp_path / 'empty.json'
+    assert benchmark.main(['empty', '--sensors', 'kinect_v1', '--frames', '2',
+                           '--json', str(out)]) == 0
+    res = json.loads(out.read_text())
+    for key in ('second_network', 'without_second_network'):
+        assert res[key]['frames'] == 2 and res[key]['frame_ms_median'] > 0
+        assert 0 <= res[key]['persons_reported'] <= 2
+
+
 def test_mocap_retargeting_recovers_a_known_pose_and_the_shipped_poses_load(tmp_path):
     """export_mocap_poses on a clip made from anny itself (a known pose's joints written
     into the mocap skeleton's slots): the retargeted pose is the one that made it; and the

@@ -55,6 +55,7 @@ FREE_SQ_MIN = 0.02  # m^2: summed squared free-space distances that call for the
                     # (exact fits to noisy val_s2 frames leave <= 0.005; 0.02 is e.g. 8
                     # vertices 5 cm out, or 2 at 10 cm)
 REST_CACHE_SIZE = 4  # shapes whose rest linearisation is kept (tracking reuses one)
+RNG_SEED = 0  # the random stream of the point subsets (`reseed` starts it again)
 
 
 @dataclass
@@ -124,7 +125,7 @@ class Fitter(FastSolver):
         self.cfg = cfg
         self.rig = Rig(body)
         self._rest_cache: dict[bytes, tuple] = {}
-        self._rng = np.random.default_rng(0)
+        self._rng = np.random.default_rng(RNG_SEED)
         # Rest vertices at the mean shape: the template for the target consistency check.
         self._template = self._rest(self.rig.shape_mean)[1]
         self._rest_normals = vertex_normals(self._template, body.faces_numpy())
@@ -137,7 +138,7 @@ class Fitter(FastSolver):
     def reseed(self) -> None:
         """Restart the random stream (the subsets of large point sets) from its start, as
         in a new Fitter; the noise-widened copies (`for_noise`) share it."""
-        self._rng.bit_generator.state = np.random.default_rng(0).bit_generator.state
+        self._rng.bit_generator.state = np.random.default_rng(RNG_SEED).bit_generator.state
 
     def for_noise(self, excess: float) -> 'Fitter':
         """This fitter with its noise-dependent thresholds widened for an excess sensor

@@ -76,8 +76,6 @@ class _Progress:
             self.bar.close()
 
 
-
-
 def _prepare_output_dir(out: Path, inputs: Path, overwrite: bool, export_meshes: bool = False,
                         log=None) -> None:
     """Check OUT and, with `overwrite`, remove the products this run writes (a symlink

@@ -20,6 +20,12 @@
         (N actors on a local Ray), one after the other: throughput (frames/s), start-up
         (model loading, and Ray's own start), wall time, the ratio, and whether the
         results are the same.
+
+    benchmark empty [--sensors kinect_v1,...] [--bin 3.0 3.5] [--frames 5] [--seed 202]
+        Frames with nobody to find: the sensor sweep's subjects (`sweep`'s generator) with
+        their pixels blanked, so only the room's blobs are left; the time per frame with
+        and without `second_network` (whose last look fits rejected blobs again), single
+        frames, one torch thread.
 """
 from __future__ import annotations
 
@@ -306,6 +312,46 @@ def bench_ray(args) -> dict:
                 same_results=not differ, differences=differ)
 
 
+def bench_empty(args) -> dict:
+    import time
+
+    import torch
+
+    from smpl_depth_ros.body import load_body_model
+    from smpl_depth_ros.config import PipelineConfig
+    from smpl_depth_ros.pipeline import Reconstructor
+    from smpl_depth_ros.synth.poses import PoseSampler
+    from smpl_depth_ros.synth.sensors import SENSORS
+    from smpl_depth_ros.tools.sweep import sweep_frames
+    from smpl_depth_ros.types import InputError
+    torch.set_num_threads(1)
+    body = load_body_model('anny')
+    sampler = PoseSampler(body, mode='templates')
+    frames = []
+    for name in args.sensors.split(','):
+        for fr in sweep_frames(body, sampler, SENSORS[name], *args.bin, args.frames, args.seed):
+            frames.append((name, np.where(fr['labels'] > 0, 0.0, fr['depth']), fr['K']))
+    rows = {}
+    for second in (False, True):
+        t, found, recs = [], 0, {}
+        for name, depth, K in frames:
+            if name not in recs:  # one per sensor, as a node on that camera
+                recs[name] = Reconstructor(PipelineConfig(tracking=False, device='cpu',
+                                                          second_network=second), body=body)
+            t0 = time.perf_counter()
+            try:
+                found += bool(recs[name].process(depth, K).persons)
+            except InputError:
+                pass
+            t.append((time.perf_counter() - t0) * 1e3)
+        rows['second_network' if second else 'without_second_network'] = dict(
+            frame_ms_median=round(float(np.median(t)), 1),
+            frame_ms_mean=round(float(np.mean(t)), 1), frames=len(t),
+            persons_reported=found)
+    return dict(sensors=args.sensors.split(','), bin=list(args.bin), seed=args.seed,
+                subjects=args.frames, **rows)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog='benchmark', description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -338,10 +384,19 @@ def main(argv=None) -> int:
     rb.add_argument('--chunk-size', type=int, default=32)
     rb.add_argument('--device', default='cpu', choices=['auto', 'cpu', 'cuda'])
     rb.add_argument('--json', default=None)
+    em = sub.add_parser('empty', help='frames with nobody to find, with and without '
+                        'second_network')
+    em.add_argument('--sensors', default='kinect_v1,realsense_d435,oak_d,'
+                    'azure_kinect_nfov_binned')
+    em.add_argument('--bin', type=float, nargs=2, default=(3.0, 3.5), metavar=('FROM', 'TO'))
+    em.add_argument('--frames', type=int, default=5, help='subjects per sensor')
+    em.add_argument('--seed', type=int, default=202)
+    em.add_argument('--json', default=None)
     args = ap.parse_args(argv)
     command = ' '.join(['benchmark', *(sys.argv[1:] if argv is None else argv)])
-    if args.cmd in ('net', 'node', 'ray'):
-        out = {'net': bench_net, 'node': bench_node, 'ray': bench_ray}[args.cmd](args)
+    if args.cmd in ('net', 'node', 'ray', 'empty'):
+        out = {'net': bench_net, 'node': bench_node, 'ray': bench_ray,
+               'empty': bench_empty}[args.cmd](args)
         write_json(out, args.json, command)
         return 0
     out = bench_fit(args)

@@ -28,7 +28,9 @@ import numpy as np
 from smpl_depth_ros import evaluation as ev
 
 
-def _frames(body, sampler, sensor, lo, hi, n, seed, strength):
+def sweep_frames(body, sampler, sensor, lo, hi, n, seed, strength=1.0):
+    """The sweep's `n` frames of one sensor and depth bin [lo, hi] (frame i from the
+    generator seeded (seed, i)): synth.dataset.make_frame dicts."""
     from dataclasses import replace
 
     from smpl_depth_ros.synth import dataset
@@ -66,7 +68,7 @@ def run_sweep(sensors, bins, frames, seed, poses, overrides, strength=1.0, progr
             pve, sd_med, sd_mean, fails = [], [], [], []
             conf = np.zeros((15, 15), np.int64)
             t0 = time.perf_counter()
-            for k, fr in enumerate(_frames(body, sampler, sensor, a, b, frames, seed,
+            for k, fr in enumerate(sweep_frames(body, sampler, sensor, a, b, frames, seed,
                                            strength)):
                 try:
                     res = rec.process(fr['depth'], fr['K'])
