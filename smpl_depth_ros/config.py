@@ -138,7 +138,7 @@ class PipelineConfig:
     second_network: bool = param(True, 'when a body was seen but no fit explained it, retry '
                                  "the frame's candidates with the other shipped network (the "
                                  'broad or the original one; not with weights_path)', **_A)
-    max_persons: int = param(1, 'persons reconstructed per frame (most central first)',
+    max_persons: int = param(3, 'persons reconstructed per frame (most central first)',
                              range=(1, 100))
     min_person_pixels: int = param(400, 'smallest person blob (pixels)',
                                    range=(1, 10_000_000), **_A)
@@ -247,4 +247,11 @@ MIN_BODY_PIXELS = 60  # network-foreground crop pixels needed to attempt a fit
 MIN_BODY_SHARE = 0.4  # a person: the network sees a body in this share of its blob's pixels
 MIN_PART_SHARE = 0.02  # body_score: a part counts when it covers this share of the body
 MIN_BEHIND = 0.3  # a blob behind a person is a tracked one with this share of its pixels
+MAX_SEE_THROUGH = 0.3  # a person's fit: at most this share of its visible side seen through
+                       # (fit.freespace.see_through_share; persons <= 0.26, boxes 0.25-0.9)
+MIN_COLD_SCORE = 2.0  # a new person (no track yet): at least this body_score (persons
+                      # 5-13, tracked ones found again half hidden from 1.9; boxes 0.4-1.6)
+NOT_PERSON_IOU = 0.8  # tracking: a candidate whose blob overlaps one the network saw no body
+                      # in (MIN_COLD_SCORE) by this intersection over union is that blob ...
+NOT_PERSON_FRAMES = 10  # ... and is skipped for this many frames after that verdict
 MAX_CLAIMED = 0.5  # a further person: at most this share of its pixels an earlier one's

@@ -13,11 +13,12 @@ import numpy as np
 import torch
 
 from smpl_depth_ros.body import load_body_model
-from smpl_depth_ros.config import (EXTRA_CANDIDATES, MAX_CLAIMED, MIN_BEHIND, MIN_BODY_PIXELS,
-                                   MIN_BODY_SHARE, MIN_PART_SHARE, SECOND_LOOK_CANDIDATES,
-                                   PipelineConfig)
+from smpl_depth_ros.config import (EXTRA_CANDIDATES, MAX_CLAIMED, MAX_SEE_THROUGH, MIN_BEHIND,
+                                   MIN_BODY_PIXELS, MIN_BODY_SHARE, MIN_COLD_SCORE,
+                                   MIN_PART_SHARE, NOT_PERSON_FRAMES, NOT_PERSON_IOU,
+                                   SECOND_LOOK_CANDIDATES, PipelineConfig)
 from smpl_depth_ros.fit import Fitter, backproject  # noqa: F401  (re-exported)
-from smpl_depth_ros.fit.freespace import FreeSpace, supporting_planes
+from smpl_depth_ros.fit.freespace import FreeSpace, see_through_share, supporting_planes
 from smpl_depth_ros.net.infer import CorrespondenceNet, broad_weights
 from smpl_depth_ros.net.preprocess import (crop_depth, find_persons, network_input,
                                            pixel_points, split_side_by_side)
@@ -26,7 +27,7 @@ from smpl_depth_ros.refine import (SurfaceParts, facing_camera, near_surface_pix
 from smpl_depth_ros.segmentation import LabelSurface, paste_labels
 from smpl_depth_ros.sensor_noise import (AutoNoise, NoiseModel, check_sensor, noise_model,
                                          scaled_reject_residual, scaled_spread)
-from smpl_depth_ros.tracking import Tracker, candidate_centre
+from smpl_depth_ros.tracking import MIN_OVERLAP, Tracker, candidate_centre
 from smpl_depth_ros.types import FrameResult, InputError, PersonResult
 
 MAX_FOV_DEG = 170.0  # intrinsics implying a wider field of view are rejected ...
@@ -166,6 +167,7 @@ class Reconstructor:
         self._auto = AutoNoise() if config.sensor == 'auto' else None
         self._preset: tuple | None = None  # (fx, NoiseModel) of a sensor preset
         self._frames = 0
+        self._not_persons: list = []  # (blob mask, frame) the network saw no body in
 
     @property
     def net(self) -> CorrespondenceNet:
@@ -212,6 +214,7 @@ class Reconstructor:
     def reset(self) -> None:
         """Forget the tracks (the next frame is fitted cold; persons get new IDs)."""
         self.tracker.clear()
+        self._not_persons = []
 
     def restart(self) -> None:
         """Back to the state just after loading: no tracks and IDs from 1 again, the 'auto'
@@ -222,6 +225,7 @@ class Reconstructor:
         self._auto = AutoNoise() if self.config.sensor == 'auto' else None
         self._preset = None
         self._frames = 0
+        self._not_persons = []
         self.fitter.reseed()
 
     def set_config(self, config: PipelineConfig) -> None:
@@ -279,10 +283,10 @@ class Reconstructor:
             self.tracker.forget_fits()
             raise InputError('no_person', f'no person found between {cfg.depth_min:.2f} and '
                              f'{cfg.depth_max:.2f} m')
-        rejected = []  # median residuals of the fits rejected as no person
+        rejected = []  # (test, value, limit) of the fits rejected as no person (`_persons`)
         seen: set[int] = set()  # ids of the tracks seen in this frame
-        persons = self._persons(d, K, list(crops), stamp_ns, timings, labels_full,
-                                network_full, rejected, noise, seen)
+        persons = self._persons(d, K, self._maybe_persons(crops), stamp_ns, timings,
+                                labels_full, network_full, rejected, noise, seen)
         if not persons:
             # Second look: none of the candidates was a person, but a person standing
             # against a wall may be hidden in a blob too big for one: peel its planes;
@@ -296,8 +300,9 @@ class Reconstructor:
             new = [c for c, n in zip(again, sizes) if not any(
                 n == k and np.array_equal(c.mask, m) for k, m in tried)]
             timings['preprocess'] += (time.perf_counter() - tp) * 1e3
+            new = self._maybe_persons(new)
             if new:
-                persons = self._persons(d, K, list(new), stamp_ns, timings, labels_full,
+                persons = self._persons(d, K, new, stamp_ns, timings, labels_full,
                                         network_full, rejected, noise, seen)
                 crops = crops + new
         if not persons and rejected and cfg.second_network and self.other_net is not None:
@@ -308,8 +313,9 @@ class Reconstructor:
                                     network_full, rejected, noise, seen, net=self.other_net)
         self.tracker.forget_fits(keep=seen)  # warm starts come from the previous frame only
         if not persons:
-            if rejected:
-                best, limit = min(rejected)
+            residuals = [r for r in rejected if r[0] == 'residual']
+            if residuals:
+                _, best, limit = min(residuals)
                 why = (f'reject_residual_m {limit * 1e3:.0f} mm'
                        if limit == cfg.reject_residual_m else
                        f'{limit * 1e3:.0f} mm: reject_residual_m '
@@ -317,11 +323,53 @@ class Reconstructor:
                 raise InputError('no_person', 'person candidates found, but no body fit '
                                  f'explained them (best median residual {best * 1e3:.0f} '
                                  f'mm > {why})')
+            if rejected:
+                kind, value, limit = min(rejected)
+                raise InputError('no_person', 'person candidates found, but no body fitted to '
+                                 'them was a person: ' + (
+                                     f'the sensor sees through {value:.0%} of the fitted '
+                                     f'body\'s visible side (> {limit:.0%})'
+                                     if kind == 'see_through' else
+                                     f'a cold fit where the network sees a body part by '
+                                     f'part only weakly (body score {-value:.1f} < '
+                                     f'{limit:.1f})'))
             raise InputError('no_person', 'person candidates found, but the network '
                              'segmented no body in them')
         timings['total'] = (time.perf_counter() - t0) * 1e3
         return FrameResult(persons=persons, labels=labels_full, timings_ms=timings,
                            network_labels=network_full)
+
+    def _maybe_persons(self, crops) -> list:
+        """The candidates of this frame to look at: with tracking, those that are not a
+        blob the network saw no body, or too little for a new person (`MIN_COLD_SCORE`),
+        in during the last
+        NOT_PERSON_FRAMES frames (intersection over union >= NOT_PERSON_IOU): a box
+        beside the person costs a network pass once every NOT_PERSON_FRAMES frames, not
+        in every frame (`max_persons` > 1 on a single-person stream)."""
+        self._not_persons = [(m, f) for m, f in self._not_persons
+                             if 0 <= self._frames - f <= NOT_PERSON_FRAMES]
+        if not self.config.tracking or not self._not_persons:
+            return list(crops)
+
+        def known(mask) -> bool:
+            return any(m.shape == mask.shape and (m & mask).sum() >= NOT_PERSON_IOU *
+                       (m | mask).sum() for m, _ in self._not_persons)
+        return [c for c in crops if c.mask is None or not known(c.mask)]
+
+    def _not_a_person(self, crop, net, K, t: float) -> None:
+        """Remember (`_maybe_persons`) a candidate matching no track in which the
+        frame's network saw no body, or too little of one for a new person; not one
+        near where a live track is expected or on its last pixels (MIN_OVERLAP of the
+        blob): a tracked person lost for a moment, half hidden, must be found again as
+        soon as it shows."""
+        if not (self.config.tracking and net is self.net and crop.mask is not None):
+            return
+        m = crop.mask
+        if self.tracker.near(candidate_centre(crop, K), t) or any(
+                tr.mask is not None and tr.mask.shape == m.shape and
+                (tr.mask & m).sum() > MIN_OVERLAP * m.sum() for tr in self.tracker.tracks):
+            return
+        self._not_persons.append((m, self._frames))
 
     def _clock(self, stamp_ns: int | None) -> float:
         """The tracks' time (s) of a frame: its stamp, or frames counted at 30 Hz."""
@@ -333,10 +381,13 @@ class Reconstructor:
                  ) -> list[PersonResult]:
         """Run the network on the candidates and fit them, until max_persons are found
         (see `process`); writes their labels into labels_full (as `segmentation` says)
-        and the network's into network_full, and appends (median residual, limit) of
-        every fit rejected as no person to `rejected`. `noise`: the sensor noise model;
-        each candidate's noise-dependent thresholds are widened for the excess noise at
-        its median depth (sensor_noise). Each candidate is matched to its track (tracking)
+        and the network's into network_full, and appends (test, value, limit) of every fit
+        rejected as no person to `rejected` (test 'residual': its median residual above
+        the limit; 'see_through': a further person's share of its visible side the sensor
+        sees through, above MAX_SEE_THROUGH; 'score': minus its body score, a new
+        person's (no track) below MIN_COLD_SCORE). `noise`: the sensor noise model; each
+        candidate's noise-dependent thresholds are widened for the excess noise at its
+        median depth (sensor_noise). Each candidate is matched to its track (tracking)
         before it is fitted; `seen` collects the ids of the tracks of accepted persons.
         `net`: the network to use (default `net`)."""
         cfg = self.config
@@ -349,7 +400,7 @@ class Reconstructor:
         plain_retried: set[int] = set()  # flip_tta: candidates retried on the plain pass
         x, lab, coords = [], [], []  # network inputs and outputs, per candidate so far
         plain = {}  # candidate -> its plain network pass, when the mirrored one is pending
-        if len(crops) > cfg.max_persons:
+        if len(crops) > cfg.max_persons or (cfg.tracking and len(crops) > 1):
             crops, x, lab, coords, plain = self._rank_candidates(d, crops, timings, net)
         track_of = dict(zip(map(id, crops), self.tracker.match(
             np.array([candidate_centre(c, K) for c in crops]).reshape(-1, 3),
@@ -386,6 +437,8 @@ class Reconstructor:
             # A candidate is a person when the network sees a body in most of it.
             if fg.sum() < MIN_BODY_PIXELS or fg.sum() < MIN_BODY_SHARE \
                     * max(int(x[i][1].sum()), 1) * self._blob_fraction(crop, x[i][1]):
+                if track_of.get(id(crop)) is None:
+                    self._not_a_person(crop, net, K, t)
                 continue
             excess = 0.0 if noise is None else float(noise.excess(crop.median_depth))
             fitter = self.fitter.for_noise(excess)
@@ -415,12 +468,20 @@ class Reconstructor:
                 taken = seen | {id(tr) for c, tr in track_of.items()
                                 if tr is not None and c != id(crop)}
                 track = self.tracker.match(centre[None], [crop.mask], t, exclude=taken)[0]
+            score = body_score(crop, x[i][1] > 0, lab[i], d.shape)
+            if track is None and score < MIN_COLD_SCORE:
+                # A new person in whom the network sees few body parts: a box or a piece of
+                # wall it labels as one or two (a tracked person found again half hidden
+                # may show few, and keeps its chance).
+                rejected.append(('score', -score, MIN_COLD_SCORE))
+                self._not_a_person(crop, net, K, t)
+                continue
             fit, vids, tracked = self._fit(pts, vids, stamp_ns, track, free, fitter)
             if fit.median_residual > reject:
                 # The body model cannot explain this blob: not a person (or a failed fit),
                 # or two people side by side in one blob: then try its two halves last.
                 timings['fit'] += (time.perf_counter() - tf) * 1e3
-                rejected.append((float(fit.median_residual), reject))
+                rejected.append(('residual', float(fit.median_residual), reject))
                 if track is not None:  # released for the other candidates
                     track.fit = None
                     track_of[id(crop)] = None
@@ -454,6 +515,20 @@ class Reconstructor:
                                  iterations=cfg.fit.tracking_iterations,
                                  free_space=free,
                                  tangent_weight=cfg.fit.icp_tangent_weight)
+            seen_through = (see_through_share(fit.vertices, self.faces, d, K,
+                                              fitter.cfg.free_space_margin)
+                            if persons else 0.0)
+            if seen_through > MAX_SEE_THROUGH:
+                # Beside a person found already, a body made up for a box or a piece of
+                # wall: the sensor sees through it where it would stand. (Not asked of the
+                # frame's first person: a folded pose fitted roughly can fail it, and
+                # losing it loses the frame.)
+                timings['fit'] += (time.perf_counter() - tf) * 1e3
+                rejected.append(('see_through', seen_through, MAX_SEE_THROUGH))
+                if track is not None:
+                    track.fit = None
+                    track_of[id(crop)] = None
+                continue
             if track is None:
                 track = self.tracker.new(centre, t)
             if cfg.tracking:
@@ -481,12 +556,12 @@ class Reconstructor:
                 mask=mask, residual_m=fit.median_residual, num_points=int(len(pts)),
                 tracked=tracked, pixels=np.stack([r, c], 1), vertex_ids=vids, crop=crop,
                 crop_labels=np.where(x[i][1] > 0, lab[i], 0).astype(np.uint8),
-                track_id=track.id, joint_confidence=conf,
-                score=body_score(crop, x[i][1] > 0, lab[i], d.shape)))
+                track_id=track.id, joint_confidence=conf, score=score))
         return persons
 
     def _rank_candidates(self, d, crops, timings, net):
-        """Order person candidates when there are more than persons wanted.
+        """Order person candidates (with tracking, or when there are more than persons
+        wanted).
 
         While a person is tracked, the candidate that covers most of its previous pixels
         comes first (no network needed). Otherwise the network runs on every candidate
@@ -507,6 +582,8 @@ class Reconstructor:
                 order = np.argsort([-max((c.mask & m).sum() for m in prev) for c in crops],
                                    kind='stable')
                 return [crops[i] for i in order], [], [], [], {}
+            return crops, [], [], [], {}
+        if len(crops) <= self.config.max_persons:  # each will be tried: no ranking needed
             return crops, [], [], [], {}
         tn = time.perf_counter()
         x = np.stack([network_input(crop_depth(d, c), c.median_depth) for c in crops])

@@ -194,6 +194,13 @@ class Tracker:
                     out[rest[r]] = free[c]
         return out
 
+    def near(self, centre: np.ndarray, t: float) -> bool:
+        """Whether a live track's predicted centre lies within its gate (as `match`
+        widens it) of `centre` at time `t`."""
+        return any(np.linalg.norm(np.asarray(centre) - tr.predicted(t)) <=
+                   self.gate_m + GATE_GROWTH_M_S * max(0.0, t - tr.last_seen)
+                   for tr in self.tracks)
+
     def new(self, centre: np.ndarray, t: float) -> Track:
         """A new track with the next ID (`seen` then records where it is)."""
         tr = Track(id=self._next_id, centre=np.asarray(centre, np.float64), last_seen=t)

@@ -7,7 +7,7 @@ from smpl_depth_ros.body.anny_model import AnnyBody
 from smpl_depth_ros.config import FitConfig
 from smpl_depth_ros.fit import Fitter, backproject
 from smpl_depth_ros.fit import objective
-from smpl_depth_ros.fit.freespace import FreeSpace
+from smpl_depth_ros.fit.freespace import FreeSpace, see_through_share
 from smpl_depth_ros.synth.poses import PoseSampler, elbow_axes, placement, sample_shape
 
 
@@ -262,6 +262,31 @@ def test_free_space_marks_what_the_sensor_would_have_seen():
     inside = FreeSpace(depth, K, ref_depth=2.0, box=(21, 11, 80, 70)).targets(verts)
     assert list(inside[0]) == [0] and np.allclose(inside[1], tgt)
     assert len(FreeSpace(depth, K, ref_depth=2.0, box=(20, 10, 60, 70)).targets(verts)[0]) == 0
+
+
+def test_see_through_share_counts_the_visible_side_the_sensor_looks_through(body):
+    """A fitted body where the image shows it: nothing seen through; the same body where
+    the image shows a wall 2 m behind it: all of its camera-facing side; half of the
+    image measured: half; pixels without a measurement count neither way."""
+    _, V, _, _ = _scene(body, 4)
+    faces = body.faces_numpy()
+    K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
+    H, W = 240, 320
+    u = np.floor(K[0, 0] * V[:, 0] / V[:, 2] + K[0, 2] + 0.5).astype(int)
+    v = np.floor(K[1, 1] * V[:, 1] / V[:, 2] + K[1, 2] + 0.5).astype(int)
+    assert u.min() > 0 and u.max() < W - 1 and v.min() > 0 and v.max() < H - 1
+    wall = np.full((H, W), V[:, 2].max() + 2.0, np.float32)
+    seen = wall.copy()  # the body's nearest surface at each pixel it covers (3x3 splats)
+    for dv in (-1, 0, 1):
+        for du in (-1, 0, 1):
+            np.minimum.at(seen, (v + dv, u + du), V[:, 2].astype(np.float32))
+    assert see_through_share(V, faces, seen, K, margin=0.1) < 0.03
+    assert see_through_share(V, faces, wall, K, margin=0.1) == 1.0
+    half = np.where(np.arange(W)[None] < np.median(u), wall, 0.0).astype(np.float32)
+    assert see_through_share(V, faces, half, K, margin=0.1) == 1.0  # only measured ones count
+    mixed = np.where(np.arange(W)[None] < np.median(u), wall, seen).astype(np.float32)
+    assert 0.3 < see_through_share(V, faces, mixed, K, margin=0.1) < 0.7
+    assert see_through_share(V, faces, np.zeros((H, W), np.float32), K, margin=0.1) == 0.0
 
 
 def test_solid_planes_push_vertices_out_and_only_supporting_ones_count():

@@ -365,6 +365,35 @@ def test_flip_tta_falls_back_on_the_plain_pass_when_its_fit_is_rejected(rec):
     assert err['tta'] < 0.06 and abs(err['tta'] - err['plain']) < 0.01, err
 
 
+def test_a_person_sized_box_is_not_a_further_person(rec, monkeypatch):
+    """`synth_bag --seed 5 --sequence`'s first frames (one person, a box beside them) with
+    `max_persons` 3: the box, which the network labels as one or two body parts, is
+    fitted a body every other frame. A new person needs a body score of MIN_COLD_SCORE,
+    and a further one a fit the sensor does not see through (MAX_SEE_THROUGH): then only
+    the person is reported, with one ID. Without both tests the box comes back."""
+    import smpl_depth_ros.pipeline as pipeline_module
+    from smpl_depth_ros.synth.dataset import make_sequence
+
+    def run():
+        multi = Reconstructor(PipelineConfig(device='cpu', max_persons=3), body=rec.body)
+        seq = make_sequence(rec.body, PoseSampler(rec.body), np.random.default_rng(5),
+                            get_camera('kinect_v1'), 150)
+        out = []
+        for i in range(6):
+            f = next(seq)
+            persons = multi.process(f['depth'], f['K'], stamp_ns=i * 33_333_333).persons
+            out.append([(p.track_id, float(np.linalg.norm(p.joints[0] - f['joints'][0])))
+                        for p in persons])
+        return out
+
+    frames = run()
+    assert all(len(f) == 1 and f[0][0] == 1 and f[0][1] < 0.1 for f in frames), frames
+    monkeypatch.setattr(pipeline_module, 'MIN_COLD_SCORE', 0.0)
+    monkeypatch.setattr(pipeline_module, 'MAX_SEE_THROUGH', 1.0)
+    frames = run()
+    assert any(len(f) > 1 and min(e for _, e in f[1:]) > 1.0 for f in frames), frames
+
+
 def test_a_frame_whose_fits_are_all_rejected_says_so(rec):
     """A person the network segments but no fit is accepted for (here: a residual bound
     no fit meets) is reported as such, with the best residual, not as 'no body seen'."""

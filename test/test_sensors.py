@@ -316,10 +316,12 @@ def test_stored_far_stereo_frame_is_reconstructed():
                                          weights_path=default_weights('anny')), body=rec.body)
     given.process(depth, f['K'])
     assert given.noise.kind == 'stereo' and given.net.path == default_weights('anny')
-    # fixed Kinect thresholds and the original network alone: no fit is accepted (with
-    # `second_network`, the default, the broad network's is, as the last look)
+    # fixed Kinect thresholds and the original network alone, one person wanted: no fit
+    # is accepted (with `second_network`, the default, the broad network's is, as the
+    # last look; with max_persons 3, the default, more candidates are tried at once)
     fixed = Reconstructor(PipelineConfig(tracking=False, device='cpu', sensor='none',
-                                         second_network=False), body=rec.body)
+                                         second_network=False, max_persons=1),
+                          body=rec.body)
     try:
         p = fixed.process(depth, f['K']).persons[0]
         worse = np.linalg.norm(p.vertices - f['vertices'], axis=1).mean() * 1e3
@@ -361,13 +363,14 @@ def test_a_person_less_central_than_three_scene_pieces_is_found():
     box beside them at the same depth, wall pieces and boxes nearer the centre. The
     person's blob merged with the box is too wide for one person, so the component
     alone is the candidate; the first pass keeps the 3 most central candidates, none of
-    them the person, and the second look takes more."""
+    them the person, and the second look takes more (one person wanted: with max_persons
+    3, the default, the first pass tries 5 candidates)."""
     from smpl_depth_ros import pipeline
     from smpl_depth_ros.config import PipelineConfig
     from smpl_depth_ros.types import InputError
     f = np.load('test/data/off_centre_d435.npz')
     depth = f['depth_mm'] / 1000.0
-    cfg = PipelineConfig(tracking=False, device='cpu', sensor='realsense_d435')
+    cfg = PipelineConfig(tracking=False, device='cpu', sensor='realsense_d435', max_persons=1)
     rec = pipeline.Reconstructor(cfg)
     p = rec.process(depth, f['K']).persons[0]
     assert np.linalg.norm(p.vertices - f['vertices'], axis=1).mean() < 0.06

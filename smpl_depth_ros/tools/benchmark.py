@@ -336,8 +336,9 @@ def bench_empty(args) -> dict:
         t, found, recs = [], 0, {}
         for name, depth, K in frames:
             if name not in recs:  # one per sensor, as a node on that camera
-                recs[name] = Reconstructor(PipelineConfig(tracking=False, device='cpu',
-                                                          second_network=second), body=body)
+                recs[name] = Reconstructor(PipelineConfig(
+                    tracking=False, device='cpu', max_persons=1, second_network=second),
+                    body=body)
             t0 = time.perf_counter()
             try:
                 found += bool(recs[name].process(depth, K).persons)

@@ -51,7 +51,7 @@ def run_sweep(sensors, bins, frames, seed, poses, overrides, strength=1.0, progr
     from smpl_depth_ros.synth.sensors import SENSORS
     from smpl_depth_ros.types import InputError
 
-    base = PipelineConfig(tracking=False)
+    base = PipelineConfig(tracking=False, max_persons=1)  # each frame's one person
     cfg = from_params(overrides, base=base)[0]
     body = load_body_model(cfg.backend, cfg.model_path or None)
     sampler = PoseSampler(body, mode=poses)
