@@ -341,8 +341,7 @@ class Reconstructor:
 
     def _maybe_persons(self, crops) -> list:
         """The candidates of this frame to look at: with tracking, those that are not a
-        blob the network saw no body, or too little for a new person (`MIN_COLD_SCORE`),
-        in during the last
+        blob found to be no person (`_not_a_person`) during the last
         NOT_PERSON_FRAMES frames (intersection over union >= NOT_PERSON_IOU): a box
         beside the person costs a network pass once every NOT_PERSON_FRAMES frames, not
         in every frame (`max_persons` > 1 on a single-person stream)."""
@@ -358,7 +357,8 @@ class Reconstructor:
 
     def _not_a_person(self, crop, net, K, t: float) -> None:
         """Remember (`_maybe_persons`) a candidate matching no track in which the
-        frame's network saw no body, or too little of one for a new person; not one
+        frame's network saw no body, or too little of one for a new person, or, beside a
+        person found in the frame, whose body fit was rejected; not one
         near where a live track is expected or on its last pixels (MIN_OVERLAP of the
         blob): a tracked person lost for a moment, half hidden, must be found again as
         soon as it shows."""
@@ -485,6 +485,8 @@ class Reconstructor:
                 if track is not None:  # released for the other candidates
                     track.fit = None
                     track_of[id(crop)] = None
+                elif persons:  # a new blob beside a person found: a piece of the scene
+                    self._not_a_person(crop, net, K, t)
                 if cfg.flip_tta and id(crop) not in plain_retried:
                     # The averaged plain and mirrored passes can mislead a fit the plain
                     # pass alone gets right (a side view whose left and right the two
