@@ -408,17 +408,6 @@ class Reconstructor:
         for i, crop in enumerate(crops):
             if len(persons) >= cfg.max_persons:
                 break
-            if i == len(x):
-                # The network runs on as many candidates as persons are still missing (one,
-                # in the common case); further ones only when these are rejected.
-                tn = time.perf_counter()
-                batch = crops[i:i + cfg.max_persons - len(persons)]
-                xb = np.stack([network_input(crop_depth(d, c), c.median_depth) for c in batch])
-                lb, cb = net.predict(xb, flip_tta=cfg.flip_tta)
-                x.extend(xb)
-                lab.extend(lb)
-                coords.extend(cb)
-                timings['network'] += (time.perf_counter() - tn) * 1e3
             tr = track_of.get(id(crop))
             if crop.behind and persons and (tr is None or tr.mask is None or
                                             crop.mask.sum() < MIN_BEHIND * tr.mask.sum()):
@@ -426,7 +415,25 @@ class Reconstructor:
                 # between its legs, or a part of someone it hides; fitted alone, a crouching
                 # body would be made up for it. Unless it is a tracked person, most of
                 # whom is still in view: someone walking behind another.
+                if i == len(x):  # no network pass for it
+                    x.append(None)
+                    lab.append(None)
+                    coords.append(None)
                 continue
+            if i == len(x):
+                # The network runs on as many candidates as persons are still missing (one,
+                # in the common case); further ones only when these are rejected. With
+                # tracks, one at a time: the tracked persons come first, and a further
+                # candidate may be skipped (behind a person, or too much of one).
+                tn = time.perf_counter()
+                n = 1 if cfg.tracking and self.tracker.tracks else cfg.max_persons - len(persons)
+                batch = crops[i:i + n]
+                xb = np.stack([network_input(crop_depth(d, c), c.median_depth) for c in batch])
+                lb, cb = net.predict(xb, flip_tta=cfg.flip_tta)
+                x.extend(xb)
+                lab.extend(lb)
+                coords.extend(cb)
+                timings['network'] += (time.perf_counter() - tn) * 1e3
             if i in plain:  # ranked on the plain pass: add the mirrored one (flip_tta)
                 tn = time.perf_counter()
                 (lb,), (cb,) = net.combine(

@@ -370,26 +370,41 @@ def test_a_person_sized_box_is_not_a_further_person(rec, monkeypatch):
     `max_persons` 3: the box, which the network labels as one or two body parts, is
     fitted a body every other frame. A new person needs a body score of MIN_COLD_SCORE,
     and a further one a fit the sensor does not see through (MAX_SEE_THROUGH): then only
-    the person is reported, with one ID. Without both tests the box comes back."""
+    the person is reported, with one ID, and the box, once found to be no person, is
+    skipped while it stays put. Without both tests and that memory the box comes back."""
     import smpl_depth_ros.pipeline as pipeline_module
     from smpl_depth_ros.synth.dataset import make_sequence
 
-    def run():
+    def run(crops_seen=None):
         multi = Reconstructor(PipelineConfig(device='cpu', max_persons=3), body=rec.body)
+        predict = multi.net.predict
+
+        def counting(x, **kw):  # the crops the network is run on, per frame
+            crops_seen[-1] += len(x)
+            return predict(x, **kw)
+        if crops_seen is not None:
+            multi.net.predict = counting
         seq = make_sequence(rec.body, PoseSampler(rec.body), np.random.default_rng(5),
                             get_camera('kinect_v1'), 150)
         out = []
         for i in range(6):
             f = next(seq)
+            if crops_seen is not None:
+                crops_seen.append(0)
             persons = multi.process(f['depth'], f['K'], stamp_ns=i * 33_333_333).persons
             out.append([(p.track_id, float(np.linalg.norm(p.joints[0] - f['joints'][0])))
                         for p in persons])
         return out
 
-    frames = run()
+    crops_seen = []
+    frames = run(crops_seen)
     assert all(len(f) == 1 and f[0][0] == 1 and f[0][1] < 0.1 for f in frames), frames
+    # Once found to be no person, the box is skipped while it stays put (NOT_PERSON_FRAMES):
+    # the network then sees the person's crop alone.
+    assert crops_seen[0] > 1 and crops_seen[-1] == 1, crops_seen
     monkeypatch.setattr(pipeline_module, 'MIN_COLD_SCORE', 0.0)
     monkeypatch.setattr(pipeline_module, 'MAX_SEE_THROUGH', 1.0)
+    monkeypatch.setattr(pipeline_module, 'NOT_PERSON_FRAMES', -1)  # nothing remembered
     frames = run()
     assert any(len(f) > 1 and min(e for _, e in f[1:]) > 1.0 for f in frames), frames
 
