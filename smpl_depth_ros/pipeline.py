@@ -167,7 +167,7 @@ class Reconstructor:
         self._auto = AutoNoise() if config.sensor == 'auto' else None
         self._preset: tuple | None = None  # (fx, NoiseModel) of a sensor preset
         self._frames = 0
-        self._not_persons: list = []  # (blob mask, frame) the network saw no body in
+        self._not_persons: list = []  # (blob mask, frame) found to be no person
 
     @property
     def net(self) -> CorrespondenceNet:
@@ -330,8 +330,8 @@ class Reconstructor:
                                      f'the sensor sees through {value:.0%} of the fitted '
                                      f'body\'s visible side (> {limit:.0%})'
                                      if kind == 'see_through' else
-                                     f'a cold fit where the network sees a body part by '
-                                     f'part only weakly (body score {-value:.1f} < '
+                                     f'a new person in whom the network sees too few '
+                                     f'body parts (body score {-value:.1f} < '
                                      f'{limit:.1f})'))
             raise InputError('no_person', 'person candidates found, but the network '
                              'segmented no body in them')
@@ -461,14 +461,6 @@ class Reconstructor:
             pts = pixel_points(r, c, d[r, c], K).astype(np.float32)
             tf = time.perf_counter()
             timings['correspondence'] += (tf - tc) * 1e3
-            free = None
-            if cfg.fit.free_space_weight > 0:  # looked for around the crop (+1/4 a side)
-                side = crop.scale * crop.size
-                box = (crop.u0 - side / 4, crop.v0 - side / 4, crop.u0 + 1.25 * side,
-                       crop.v0 + 1.25 * side)
-                zmed = float(np.median(d[r, c].astype(np.float64)))
-                free = FreeSpace(d, K, zmed, fitter.cfg.free_space_margin, box=box,
-                                 planes=supporting_planes(crop.planes, pts))
             centre = candidate_centre(crop, K)
             track = track_of.get(id(crop))
             if track is None:  # a new person, a split half, or its track was released
@@ -483,6 +475,14 @@ class Reconstructor:
                 rejected.append(('score', -score, MIN_COLD_SCORE))
                 self._not_a_person(crop, net, K, t)
                 continue
+            free = None
+            if cfg.fit.free_space_weight > 0:  # looked for around the crop (+1/4 a side)
+                side = crop.scale * crop.size
+                box = (crop.u0 - side / 4, crop.v0 - side / 4, crop.u0 + 1.25 * side,
+                       crop.v0 + 1.25 * side)
+                zmed = float(np.median(d[r, c].astype(np.float64)))
+                free = FreeSpace(d, K, zmed, fitter.cfg.free_space_margin, box=box,
+                                 planes=supporting_planes(crop.planes, pts))
             fit, vids, tracked = self._fit(pts, vids, stamp_ns, track, free, fitter)
             if fit.median_residual > reject:
                 # The body model cannot explain this blob: not a person (or a failed fit),

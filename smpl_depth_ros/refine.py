@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from smpl_depth_ros.fit.rig import vertex_normals
+from smpl_depth_ros.fit.rig import facing_camera  # noqa: F401  (re-exported)
 from smpl_depth_ros.net.preprocess import pixel_points
 from smpl_depth_ros.segmentation import PLANE_M
 
@@ -40,18 +40,6 @@ class SurfaceParts:
         valid = body.valid_vertices.cpu().numpy()
         return cls(body.faces_numpy(), parts, np.flatnonzero(valid),
                    [np.flatnonzero((parts == p) & valid) for p in range(int(parts.max()) + 1)])
-
-
-def facing_camera(vertices, faces, cos_max: float) -> np.ndarray | None:
-    """(V,) bool: the vertices of a fitted mesh that face the camera (the cosine of
-    their normal and the view ray below `cos_max`, fit.icp_front_cos), or None when that
-    is 1 (any vertex). A pixel sees the front of the surface: the ICP step and the pixels
-    the network left out are matched to these only."""
-    if cos_max >= 1.0:
-        return None
-    v = np.asarray(vertices, np.float64)
-    ray = v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-9)
-    return (vertex_normals(v, faces) * ray).sum(1) < cos_max
 
 
 def refine_correspondences(pts, vids, vertices, surface: SurfaceParts,

@@ -22,6 +22,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from smpl_depth_ros.fit.rig import facing_camera
+
 SEE_THROUGH_FRONT_COS = -0.3  # see_through_share: vertices facing the camera at least this
 
 
@@ -153,10 +155,8 @@ def see_through_share(verts: np.ndarray, faces: np.ndarray, depth: np.ndarray, K
         front_cos: a vertex faces the camera when the cosine of its normal and the view
             ray is below this.
     """
-    from smpl_depth_ros.fit.rig import vertex_normals
     v = np.asarray(verts, np.float64)
-    ray = v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-9)
-    v = v[((vertex_normals(v, faces) * ray).sum(1) < front_cos) & (v[:, 2] > 1e-3)]
+    v = v[facing_camera(v, faces, front_cos) & (v[:, 2] > 1e-3)]
     H, W = depth.shape
     u = np.floor(K[0, 0] * v[:, 0] / v[:, 2] + K[0, 2] + 0.5).astype(np.int64)
     r = np.floor(K[1, 1] * v[:, 1] / v[:, 2] + K[1, 2] + 0.5).astype(np.int64)

@@ -142,3 +142,16 @@ def vertex_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
     for k in range(3):
         np.add.at(n, faces[:, k], fn)
     return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+
+
+def facing_camera(vertices, faces, cos_max: float) -> np.ndarray | None:
+    """(V,) bool: the vertices of a fitted mesh that face the camera (the cosine of
+    their normal and the view ray below `cos_max`, e.g. fit.icp_front_cos), or None when
+    that is 1 (any vertex). A pixel sees the front of the surface: the ICP step, the
+    pixels the network left out (refine) and the see-through share (freespace) use
+    these only."""
+    if cos_max >= 1.0:
+        return None
+    v = np.asarray(vertices, np.float64)
+    ray = v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-9)
+    return (vertex_normals(v, faces) * ray).sum(1) < cos_max
