@@ -13,8 +13,8 @@ import numpy as np
 import torch
 
 from smpl_depth_ros.body import load_body_model
-from smpl_depth_ros.config import (EXTRA_CANDIDATES, MAX_CLAIMED, MAX_SEE_THROUGH, MIN_BEHIND,
-                                   MIN_BODY_PIXELS, MIN_BODY_SHARE, MIN_COLD_SCORE,
+from smpl_depth_ros.config import (EXTRA_CANDIDATES, GIVE_UP, MAX_CLAIMED, MAX_SEE_THROUGH,
+                                   MIN_BEHIND, MIN_BODY_PIXELS, MIN_BODY_SHARE, MIN_COLD_SCORE,
                                    MIN_PART_SHARE, NOT_PERSON_FRAMES, NOT_PERSON_IOU,
                                    SECOND_LOOK_CANDIDATES, PipelineConfig)
 from smpl_depth_ros.fit import Fitter, backproject  # noqa: F401  (re-exported)
@@ -483,7 +483,9 @@ class Reconstructor:
                 zmed = float(np.median(d[r, c].astype(np.float64)))
                 free = FreeSpace(d, K, zmed, fitter.cfg.free_space_margin, box=box,
                                  planes=supporting_planes(crop.planes, pts))
-            fit, vids, tracked = self._fit(pts, vids, stamp_ns, track, free, fitter)
+            fit, vids, tracked = self._fit(pts, vids, stamp_ns, track, free, fitter,
+                                           give_up_m=GIVE_UP * reject
+                                           if track is None and persons else None)
             if fit.median_residual > reject:
                 # The body model cannot explain this blob: not a person (or a failed fit),
                 # or two people side by side in one blob: then try its two halves last.
@@ -492,8 +494,14 @@ class Reconstructor:
                 if track is not None:  # released for the other candidates
                     track.fit = None
                     track_of[id(crop)] = None
-                elif persons:  # a new blob beside a person found: a piece of the scene
+                elif persons:
+                    # A new blob beside a person found: a piece of the scene. Neither
+                    # retried on the plain pass nor split: on the validation bags
+                    # (multi_s31, multi_s35, seq_s5, val_s2, and the sample bag) no
+                    # such blob of 59 ever gave a person that way, and each try is a
+                    # network pass and a cold fit.
                     self._not_a_person(crop, net, K, t)
+                    continue
                 if cfg.flip_tta and id(crop) not in plain_retried:
                     # The averaged plain and mirrored passes can mislead a fit the plain
                     # pass alone gets right (a side view whose left and right the two
@@ -611,14 +619,15 @@ class Reconstructor:
         return ([crops[i] for i in order], [x[i] for i in order], [lab[i] for i in order],
                 [coords[i] for i in order], plain)
 
-    def _fit(self, pts, vids, stamp_ns, track=None, free=None, fitter=None):
+    def _fit(self, pts, vids, stamp_ns, track=None, free=None, fitter=None, give_up_m=None):
         """Fit one person: warm-started from the previous frame while the track holds
         (refining the correspondences on the previous, moved mesh was measured to lock
         onto wrong poses; `process` refines them on this frame's warm fit instead), else
         cold.
 
         `free`: the frame's FreeSpace (or None), passed to the fitter; `fitter`: the
-        fitter to use (default self.fitter; `Fitter.for_noise` widens its thresholds).
+        fitter to use (default self.fitter; `Fitter.for_noise` widens its thresholds);
+        `give_up_m`: passed to the cold fit (`Fitter.fit`).
 
         Returns (FitResult, correspondences used, tracked).
         """
@@ -632,7 +641,7 @@ class Reconstructor:
             if fit.median_residual <= fitter.cfg.lost_residual_m:
                 self._sample_shape(pts, vids, fit, track, fitter)
                 return fit, vids, True
-        fit = fitter.fit(pts, vids, free_space=free)
+        fit = fitter.fit(pts, vids, free_space=free, give_up_m=give_up_m)
         return fit, vids, False
 
     def _sample_shape(self, pts, vids, fit, track, fitter=None) -> None:

@@ -61,11 +61,15 @@ class NoiseModel:
         if not self.z:
             return np.zeros_like(z)
         zt, st = np.asarray(self.z), np.asarray(self.sigma)
-        out = np.interp(z, zt, st)
-        hi = z > zt[-1]
-        out = np.where(hi, st[-1] * (z / zt[-1]) ** 2, out)
-        lo = z < zt[0]
-        return np.where(lo, st[0] * np.maximum(z / zt[0], 0.0) ** 2, out)
+        zz = z.reshape(-1)
+        out = np.interp(zz, zt, st)
+        hi = np.flatnonzero(zz > zt[-1])  # (few: the extrapolations only where needed)
+        if len(hi):
+            out[hi] = st[-1] * (zz[hi] / zt[-1]) ** 2
+        lo = np.flatnonzero(zz < zt[0])
+        if len(lo):
+            out[lo] = st[0] * np.maximum(zz[lo] / zt[0], 0.0) ** 2
+        return out.reshape(z.shape)
 
     def excess(self, z) -> np.ndarray:
         """Noise beyond what the defaults were tuned for (see the module doc), metres."""

@@ -387,6 +387,23 @@ def test_warm_start_needs_fewer_iterations(body):
     assert _pve(warm, V + np.float32([0.01, 0, 0])) < 0.01
 
 
+def test_a_cold_fit_gives_up_on_a_blob_no_body_explains(body):
+    """`give_up_m`: a cold fit whose first run leaves a larger median residual is returned
+    there (no turned restart, no free space, no completion). A wall patch whose pixels
+    the network named random vertices is given up on, still rejected by the pipeline's
+    residual test (0.09 m); a body's fit is the same with or without the bound."""
+    rng, V, _, front = _scene(body, 3)
+    wall = np.c_[rng.uniform(-0.5, 0.5, (1500, 2)), np.full(1500, 3.0)].astype(np.float32)
+    ids = rng.integers(0, len(V), 1500)
+    full = Fitter(body).fit(wall, ids)
+    quick = Fitter(body).fit(wall, ids, give_up_m=0.135)
+    assert quick.iterations < full.iterations and quick.time_ms < full.time_ms
+    assert quick.median_residual > 0.09 and full.median_residual > 0.09
+    a = Fitter(body).fit(V[front], front)
+    b = Fitter(body).fit(V[front], front, give_up_m=0.135)
+    assert np.array_equal(a.vertices, b.vertices) and a.iterations == b.iterations
+
+
 def test_joint_baseline_and_lbfgs_reference(body):
     rng, V, J, front = _scene(body, 8)
     fit = Fitter(body)

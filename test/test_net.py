@@ -131,6 +131,29 @@ def test_weights_for_another_body_are_refused(body, tmp_path):
         CorrespondenceNet(body, str(tmp_path / 'missing.pt'))
 
 
+def test_depth_jumps_are_edges_above_the_threshold_widened_by_the_noise():
+    """A depth jump is an edge above 6 cm (at 2 m) plus 3 times the sensor's excess noise:
+    with 1 cm of excess a 7.5 cm step is no edge and a 10 cm one is; with none, both are.
+    Rows and columns alike, at full and half resolution."""
+    from smpl_depth_ros.net.preprocess import _depth_edges
+
+    def excess(z):
+        return np.full(np.shape(z), 0.01)
+    for step, with_noise in ((0.075, False), (0.10, True)):
+        for d in (np.full((40, 60), 2.0, np.float32), np.full((60, 40), 2.0, np.float32).T):
+            if d.flags['C_CONTIGUOUS']:
+                d[:, 30:] += step  # a jump between columns 29 and 30
+            else:
+                d[30:, :] += step  # (transposed: between rows 29 and 30)
+            for s in (1, 2):
+                plain, noisy = _depth_edges(d, s), _depth_edges(d, s, excess)
+                for edges, expected in ((plain, True), (noisy, with_noise)):
+                    e = edges if d.flags['C_CONTIGUOUS'] else edges.T
+                    cols = np.flatnonzero(e.any(0))
+                    assert (len(cols) > 0) == expected, (step, s, cols)
+                    assert all(29 // s <= c <= 30 // s for c in cols), cols
+
+
 def test_split_side_by_side():
     """Two people touching side by side -> split at the dip between the heads; one person
     (a single high point, arms out) -> not split."""

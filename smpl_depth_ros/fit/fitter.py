@@ -275,7 +275,8 @@ class Fitter(FastSolver):
              solver: str | None = None, iterations: int | None = None,
              fix_shape: bool | None = None, weights=None,
              targets_are_joints: bool = False, free_space: FreeSpace | None = None,
-             temporal_weight: float = 0.0, tangent_weight: float | None = None) -> FitResult:
+             temporal_weight: float = 0.0, tangent_weight: float | None = None,
+             give_up_m: float | None = None) -> FitResult:
         """Fit to points with correspondences.
 
         Args:
@@ -295,6 +296,9 @@ class Fitter(FastSolver):
                 prior (FitConfig.lambda_temporal).
             tangent_weight: override cfg.tangent_weight for this fit (the pipeline's
                 refit to nearest-vertex correspondences uses cfg.icp_tangent_weight).
+            give_up_m: a cold fit (the fast solver) whose first run leaves a median target
+                residual above this is returned as it is: no turned restart, no free
+                space, no completion (a blob no body explains, not worth the rest).
 
         Returns:
             FitResult.
@@ -354,6 +358,9 @@ class Fitter(FastSolver):
             state, en, iters, sq = self._levenberg_marquardt(
                 state, pts, ids, wts, targets_are_joints, n, fix_shape, s0, anchor=anchor,
                 tangent_weight=tw)
+            if give_up_m is not None and not warm and np.sqrt(np.median(sq)) > give_up_m:
+                return self._result(state, (pts, ids, wts, sq), pts_all, ids_all,
+                                    targets_are_joints, iters, t0, solver, warm)
             if not warm and cfg.flip_restart and not targets_are_joints:
                 # Depth-only correspondences can confuse front and back: when the fit
                 # leaves a large residual, also try the init turned 180 deg about the
