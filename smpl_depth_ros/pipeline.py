@@ -3,11 +3,14 @@
 preprocess (find persons, crop) -> double U-Net -> Eq. 2 correspondences -> fit
 (warm-started from the previous frame while the track holds) -> ICP refinement (refine)
 -> labels from the fitted mesh (segmentation) -> result. The live node and offline
-processing are two thin drivers of this class.
+processing are two thin drivers of this class. `process` runs a frame's two stages:
+`detect` (the frame checked, its sensor noise, its person candidates; no track read) and
+`reconstruct` (the rest), which the live node runs on two threads, one frame apart.
 """
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -41,6 +44,31 @@ BROAD_NETWORK_FOR = ('stereo',)  # sensor classes whose frames use the broad net
                                 # weights_path ''): chosen on the validation sweep, where
                                 # it found 6-18 points more of the stereo frames and was
                                 # 0-1 mm worse on time of flight, 3-5 mm on structured light
+
+
+@dataclass
+class Detection:
+    """A frame after `Reconstructor.detect`: what `Reconstructor.reconstruct` needs.
+
+    Attributes:
+        depth: (H, W) float32 metres, invalid pixels 0 (validated).
+        K: (3, 3) float64 intrinsics.
+        stamp_ns: capture time (None: frames counted at 30 Hz).
+        index: the frame's number since the core was loaded or restarted (from 1).
+        noise: the sensor noise model for this frame (None: default thresholds).
+        net: the correspondence network for this frame (the sensor class decides).
+        crops: the person candidates (net.preprocess.Crop), most central first.
+        ms: time the detection took.
+    """
+
+    depth: np.ndarray
+    K: np.ndarray
+    stamp_ns: int | None
+    index: int
+    noise: NoiseModel | None
+    net: CorrespondenceNet
+    crops: list
+    ms: float
 
 
 def resolve_device(name: str) -> torch.device:
@@ -166,7 +194,9 @@ class Reconstructor:
         self._joint_adjacency = joint_adjacency(self.body.joint_parents)
         self._auto = AutoNoise() if config.sensor == 'auto' else None
         self._preset: tuple | None = None  # (fx, NoiseModel) of a sensor preset
-        self._frames = 0
+        self._frames = 0  # frames detected (`detect`) ...
+        self._frame = 0  # ... and the number of the one being reconstructed ...
+        self._frame_net: CorrespondenceNet | None = None  # ... and its network
         self._not_persons: list = []  # (blob mask, frame) found to be no person
 
     @property
@@ -184,9 +214,13 @@ class Reconstructor:
     def other_net(self) -> CorrespondenceNet | None:
         """The shipped network `net` is not (None with a given `weights_path`, or a
         backend with one network): `second_network`'s fallback."""
+        return self._other(self.net)
+
+    def _other(self, net: CorrespondenceNet) -> CorrespondenceNet | None:
+        """The shipped network `net` is not (None without a second one)."""
         if self._broad_net is None:
             return None
-        return self._net if self.net is self._broad_net else self._broad_net
+        return self._net if net is self._broad_net else self._broad_net
 
     @property
     def noise(self) -> NoiseModel:
@@ -224,7 +258,7 @@ class Reconstructor:
         self.tracker = Tracker(self.config.track_timeout_s, self.config.track_gate_m)
         self._auto = AutoNoise() if self.config.sensor == 'auto' else None
         self._preset = None
-        self._frames = 0
+        self._frames = self._frame = 0
         self._not_persons = []
         self.fitter.reseed()
 
@@ -250,7 +284,7 @@ class Reconstructor:
 
     def process(self, depth: np.ndarray, K: np.ndarray, stamp_ns: int | None = None
                 ) -> FrameResult:
-        """Reconstruct the persons in one depth frame.
+        """Reconstruct the persons in one depth frame: `reconstruct(detect(...))`.
 
         Args:
             depth: (H, W) metres (float; 0/NaN invalid).
@@ -263,22 +297,49 @@ class Reconstructor:
         Raises:
             InputError for unusable frames, with reason 'no_person' when nobody is found.
         """
+        return self.reconstruct(self.detect(depth, K, stamp_ns))
+
+    def detect(self, depth: np.ndarray, K: np.ndarray, stamp_ns: int | None = None
+               ) -> Detection:
+        """The first stage of `process`: the frame checked, its sensor noise and its
+        person candidates. It reads no track and no fit, so a live node may run it on the
+        next frame while `reconstruct` runs on this one: as long as each stage takes the
+        frames in order, the results are those of `process`.
+
+        Raises:
+            InputError for unusable frames (not for frames without candidates: their
+            `reconstruct` says so, after the tracks have seen the frame).
+        """
         cfg = self.config
         t0 = time.perf_counter()
         d = validate_input(depth, K, cfg.max_image_pixels)
         K = np.asarray(K, np.float64)
         noise = self._noise_for(d, K)
+        crops = find_persons(d, K, cfg.depth_min, cfg.depth_max, cfg.min_person_pixels,
+                             max_persons=max(cfg.max_persons, 1) + EXTRA_CANDIDATES,
+                             noise=None if noise is None else noise.excess)
+        return Detection(d, K, stamp_ns, self._frames, noise, self.net, crops,
+                         (time.perf_counter() - t0) * 1e3)
+
+    def reconstruct(self, det: Detection) -> FrameResult:
+        """The second stage of `process`: the persons of a frame `detect`ed (see there).
+
+        Raises:
+            InputError with reason 'no_person' when nobody is found.
+        """
+        cfg = self.config
+        t0 = time.perf_counter()
+        d, K, stamp_ns, noise, crops = det.depth, det.K, det.stamp_ns, det.noise, det.crops
         excess = None if noise is None else noise.excess
+        self._frame, self._frame_net = det.index, det.net
         t = self._clock(stamp_ns)
         self.tracker.expire(t)
-        crops = find_persons(d, K, cfg.depth_min, cfg.depth_max, cfg.min_person_pixels,
-                             max_persons=max(cfg.max_persons, 1) + EXTRA_CANDIDATES, noise=excess)
         t1 = time.perf_counter()
         labels_full = np.zeros(d.shape, np.uint8)
         network_full = (np.zeros(d.shape, np.uint8) if cfg.segmentation == 'model'
                         else labels_full)
-        timings = dict(preprocess=(t1 - t0) * 1e3, network=0.0, correspondence=0.0, fit=0.0,
-                       labels=0.0)
+        timings = dict(preprocess=det.ms + (t1 - t0) * 1e3, network=0.0, correspondence=0.0,
+                       fit=0.0, labels=0.0)
         if not crops:
             self.tracker.forget_fits()
             raise InputError('no_person', f'no person found between {cfg.depth_min:.2f} and '
@@ -305,12 +366,13 @@ class Reconstructor:
                 persons = self._persons(d, K, new, stamp_ns, timings, labels_full,
                                         network_full, rejected, noise, seen)
                 crops = crops + new
-        if not persons and rejected and cfg.second_network and self.other_net is not None:
+        other = self._other(det.net)
+        if not persons and rejected and cfg.second_network and other is not None:
             # Third look: a body was seen but no fit explained it. The other shipped
             # network (broad poses and every sensor class, or the original) gets the same
             # candidates: a frame one network fails on, the other often gets.
             persons = self._persons(d, K, list(crops), stamp_ns, timings, labels_full,
-                                    network_full, rejected, noise, seen, net=self.other_net)
+                                    network_full, rejected, noise, seen, net=other)
         self.tracker.forget_fits(keep=seen)  # warm starts come from the previous frame only
         if not persons:
             residuals = [r for r in rejected if r[0] == 'residual']
@@ -335,7 +397,7 @@ class Reconstructor:
                                      f'{limit:.1f})'))
             raise InputError('no_person', 'person candidates found, but the network '
                              'segmented no body in them')
-        timings['total'] = (time.perf_counter() - t0) * 1e3
+        timings['total'] = det.ms + (time.perf_counter() - t0) * 1e3
         return FrameResult(persons=persons, labels=labels_full, timings_ms=timings,
                            network_labels=network_full)
 
@@ -346,7 +408,7 @@ class Reconstructor:
         beside the person costs a network pass once every NOT_PERSON_FRAMES frames, not
         in every frame (`max_persons` > 1 on a single-person stream)."""
         self._not_persons = [(m, f) for m, f in self._not_persons
-                             if 0 <= self._frames - f <= NOT_PERSON_FRAMES]
+                             if 0 <= self._frame - f <= NOT_PERSON_FRAMES]
         if not self.config.tracking or not self._not_persons:
             return list(crops)
 
@@ -362,18 +424,18 @@ class Reconstructor:
         near where a live track is expected or on its last pixels (MIN_OVERLAP of the
         blob): a tracked person lost for a moment, half hidden, must be found again as
         soon as it shows."""
-        if not (self.config.tracking and net is self.net and crop.mask is not None):
+        if not (self.config.tracking and net is self._frame_net and crop.mask is not None):
             return
         m = crop.mask
         if self.tracker.near(candidate_centre(crop, K), t) or any(
                 tr.mask is not None and tr.mask.shape == m.shape and
                 (tr.mask & m).sum() > MIN_OVERLAP * m.sum() for tr in self.tracker.tracks):
             return
-        self._not_persons.append((m, self._frames))
+        self._not_persons.append((m, self._frame))
 
     def _clock(self, stamp_ns: int | None) -> float:
         """The tracks' time (s) of a frame: its stamp, or frames counted at 30 Hz."""
-        return stamp_ns * 1e-9 if stamp_ns is not None else self._frames / 30.0
+        return stamp_ns * 1e-9 if stamp_ns is not None else self._frame / 30.0
 
     def _persons(self, d, K, crops, stamp_ns, timings, labels_full, network_full,
                  rejected: list, noise: NoiseModel | None = None,
@@ -389,9 +451,9 @@ class Reconstructor:
         candidate's noise-dependent thresholds are widened for the excess noise at its
         median depth (sensor_noise). Each candidate is matched to its track (tracking)
         before it is fitted; `seen` collects the ids of the tracks of accepted persons.
-        `net`: the network to use (default `net`)."""
+        `net`: the network to use (default: the frame's, `Detection.net`)."""
         cfg = self.config
-        net = net or self.net
+        net = net or self._frame_net
         seen = set() if seen is None else seen
         t = self._clock(stamp_ns)
         persons = []

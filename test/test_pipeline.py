@@ -421,6 +421,39 @@ def test_a_frame_whose_fits_are_all_rejected_says_so(rec):
     assert e.value.reason == 'no_person'
 
 
+def test_detecting_the_next_frame_first_changes_nothing(rec):
+    """The live node detects frame t + 1 (`Reconstructor.detect`) before frame t is
+    reconstructed (`reconstruct`): on a sequence of two people walking, with tracking,
+    several persons and the 'auto' sensor noise, that order gives exactly what `process`
+    gives frame by frame, IDs, meshes, pixels and labels alike."""
+    from smpl_depth_ros.synth.dataset import make_multi_sequence
+
+    seq = make_multi_sequence(rec.body, PoseSampler(rec.body), np.random.default_rng(31),
+                              get_camera('kinect_v1'), 150, persons=2)
+    frames = [next(seq) for _ in range(5)]
+    stamps = [(k + 1) * 33_333_333 for k in range(len(frames))]
+
+    def out(r):
+        return ([(p.track_id, p.vertices, p.mask) for p in r.persons], r.labels)
+    one = Reconstructor(PipelineConfig(device='cpu', max_persons=3), body=rec.body)
+    ahead = Reconstructor(PipelineConfig(device='cpu', max_persons=3), body=rec.body)
+    expected = [out(one.process(f['depth'], f['K'], stamp_ns=s))
+                for f, s in zip(frames, stamps)]
+    dets = [ahead.detect(frames[0]['depth'], frames[0]['K'], stamp_ns=stamps[0])]
+    got = []
+    for f, s in zip(frames[1:], stamps[1:]):
+        dets.append(ahead.detect(f['depth'], f['K'], stamp_ns=s))
+        got.append(out(ahead.reconstruct(dets[-2])))
+    got.append(out(ahead.reconstruct(dets[-1])))
+    assert sum(len(e[0]) for e in expected) > len(frames)  # two people in some frames
+    for (pe, le), (pg, lg) in zip(expected, got):
+        assert [p[0] for p in pe] == [p[0] for p in pg]
+        for a, b in zip(pe, pg):
+            np.testing.assert_array_equal(a[1], b[1])
+            np.testing.assert_array_equal(a[2], b[2])
+        np.testing.assert_array_equal(le, lg)
+
+
 def test_restart_gives_what_a_fresh_core_gives(rec):
     """After `restart` a used core (tracks, IDs, the 'auto' noise estimate and the fit's
     random stream all advanced by the tests above) reconstructs a sequence exactly as a

@@ -92,7 +92,7 @@ def mesh_vertices(marker: Marker, faces: np.ndarray, num_vertices: int) -> np.nd
 # -- the real core, shared -------------------------------------------------------------
 class Core:
     """The real Reconstructor behind the node's factory: optional delay before each
-    frame (a deliberately slow worker), counts of calls and resets."""
+    frame's reconstruction (a deliberately slow worker), counts of calls and resets."""
 
     def __init__(self, rec, delay: float = 0.0):
         self._rec = rec
@@ -100,7 +100,7 @@ class Core:
         self.calls = 0
         self.resets = 0
         self.busy = False
-        self.durations: list[float] = []  # wall time of each process() call (s)
+        self.durations: list[float] = []  # wall time of each frame's reconstruction (s)
 
     @property
     def body(self):
@@ -121,17 +121,23 @@ class Core:
     def __getattr__(self, name):  # set_config and anything else the node may use
         return getattr(self._rec, name)
 
-    def process(self, depth, K, stamp_ns=None):
+    def detect(self, depth, K, stamp_ns=None):
+        return self._rec.detect(depth, K, stamp_ns=stamp_ns)
+
+    def reconstruct(self, det):
         self.busy = True
         t0 = time.monotonic()
         try:
             if self.delay:
                 time.sleep(self.delay)
             self.calls += 1
-            return self._rec.process(depth, K, stamp_ns=stamp_ns)
+            return self._rec.reconstruct(det)
         finally:
             self.durations.append(time.monotonic() - t0)
             self.busy = False
+
+    def process(self, depth, K, stamp_ns=None):
+        return self.reconstruct(self.detect(depth, K, stamp_ns))
 
     def reset(self):
         self.resets += 1
@@ -491,7 +497,8 @@ def test_burst_against_slow_worker(harness, core, scene):
     send_until(tester, scene, 'mesh', 30.0)  # warm up
 
     def idle():
-        return not core.busy and node._mailbox.pending() == 0
+        return (not core.busy and node._mailbox.pending() == 0
+                and node._handoff.pending() == 0)
 
     assert wait_for(idle, 30.0)
     tester.clear()
@@ -515,7 +522,7 @@ def test_burst_against_slow_worker(harness, core, scene):
     assert len(lat) >= 3, f'too few outputs: {len(lat)} for {i} frames'
     # Bounded latency: at most one frame waiting (the one being processed) plus its own
     # processing, whatever the burst length; a queue would grow by ~1 s per second.
-    service = max(core.durations[calls0:])  # one process() call, the delay included
+    service = max(core.durations[calls0:])  # one reconstruction, the delay included
     bound = 2 * service + 0.5
     assert lat.max() < bound, (lat, service)
     assert lat[-1] < np.median(lat[:max(1, len(lat) // 3)]) + service, lat
@@ -597,7 +604,7 @@ def test_bad_inputs_then_good_frame(harness, core, scene):
         assert reason in reasons, (kind, reason, text)
         assert text  # a message naming the problem
         seen.append(reason)
-        assert node.context.ok() and node._worker.is_alive()
+        assert node.context.ok() and node._worker.is_alive() and node._detector.is_alive()
         assert not tester.with_stamp('mesh', stamp)
     # The node goes on: a good frame still produces every output.
     stamp = send_until(tester, scene, 'mesh', 30.0)
