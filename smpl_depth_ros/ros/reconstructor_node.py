@@ -56,6 +56,7 @@ NODE_NAME = 'reconstructor'
 STAMP_JUMP_BACK_S = 0.001    # a depth stamp this far before the previous one is a jump
 STAMP_JUMP_FORWARD_S = 60.0  # ... and this far after it
 INFO_STALE_S = 2.0           # diagnostics warn when camera_info is older than this
+STAGE_FRAMES = 15            # the stages' usual times: medians over this many frames
 RELIABILITY = {'best_effort': ReliabilityPolicy.BEST_EFFORT,
                'reliable': ReliabilityPolicy.RELIABLE}
 
@@ -90,12 +91,15 @@ class Mailbox:
             self._cv.notify()
             return stale
 
-    def get(self, timeout: float):
-        """The newest item (removing it), or None after `timeout` seconds."""
+    def get(self, timeout: float, then: Callable[[Any], None] | None = None):
+        """The newest item (removing it), or None after `timeout` seconds; `then(item)`
+        is called before the mailbox lets go of it (no moment where it is nowhere)."""
         with self._cv:
             if self._item is None:
                 self._cv.wait(timeout)
             item, self._item = self._item, None
+            if then is not None:
+                then(item)
             return item
 
     def pending(self) -> int:
@@ -116,6 +120,8 @@ class Handoff:
         self._cv = threading.Condition()
         self._item = None
         self.busy = False
+        self.taken = 0.0  # time.monotonic() of the last `take`
+        self.detecting = False  # the detector holds a frame (taken from the mailbox)
 
     def wait_free(self, timeout: float, idle: bool = False) -> bool:
         """Wait until the slot is empty (with `idle`, and the reconstructor idle too);
@@ -124,9 +130,26 @@ class Handoff:
             return self._cv.wait_for(
                 lambda: self._item is None and not (idle and self.busy), timeout)
 
+    def hold(self, mailbox: Mailbox, timeout: float):
+        """The newest frame of `mailbox` for the detector (None after `timeout` seconds):
+        from then until `put` or `release` it counts as pending here, so a frame is
+        always pending somewhere until it is reconstructed or reported."""
+        return mailbox.get(timeout=timeout, then=self._hold)
+
+    def _hold(self, frame) -> None:
+        with self._cv:
+            self.detecting = frame is not None
+
+    def release(self) -> None:
+        """The held frame ends in the detector (reported as unusable)."""
+        with self._cv:
+            self.detecting = False
+            self._cv.notify_all()
+
     def put(self, item) -> None:
         with self._cv:
             self._item = item
+            self.detecting = False
             self._cv.notify_all()
 
     def take(self, timeout: float):
@@ -137,8 +160,15 @@ class Handoff:
                 self._cv.wait(timeout)
             item, self._item = self._item, None
             self.busy = item is not None
+            if self.busy:
+                self.taken = time.monotonic()
             self._cv.notify_all()
             return item
+
+    def wait_until(self, when: float) -> None:
+        """Wait until time.monotonic() reaches `when`, or the reconstructor is done."""
+        with self._cv:
+            self._cv.wait_for(lambda: not self.busy, max(0.0, when - time.monotonic()))
 
     def done(self) -> None:
         with self._cv:
@@ -146,8 +176,9 @@ class Handoff:
             self._cv.notify_all()
 
     def pending(self) -> int:
+        """Frames between the mailbox and the reconstructor (0 or 1)."""
         with self._cv:
-            return int(self._item is not None)
+            return int(self._item is not None or self.detecting)
 
     def wake(self) -> None:
         with self._cv:
@@ -197,6 +228,8 @@ class ReconstructorNode(Node):
         self._diag_lock = threading.Lock()        # /diagnostics publisher (two threads)
         self._mailbox = Mailbox()
         self._handoff = Handoff()
+        self._stage_s = [0.0, 0.0]                # usual detection, reconstruction (s)
+        self._stage_times = (deque(maxlen=STAGE_FRAMES), deque(maxlen=STAGE_FRAMES))
         self._stop = threading.Event()
         self._camera_infos: dict[str, Any] = {}   # frame_id -> (K, D, size) | InputError
         self._info_time: dict[str, float] = {}    # frame_id -> last camera_info (monotonic)
@@ -443,24 +476,35 @@ class ReconstructorNode(Node):
         while not self._stop.is_set():
             with self._lock:
                 pending = self._pending_config is not None
-            # The slot free (the reconstructor has taken the previous frame): the newest
-            # frame is detected now. A new configuration waits for both to be idle.
+            # The slot free (the reconstructor has taken the previous frame), the newest
+            # frame is detected so as to be ready when the reconstructor is (its usual
+            # time after taking a frame, less a detection's): earlier, the frame would
+            # only age in the slot. A new configuration waits for both to be idle.
             if not self._handoff.wait_free(0.1, idle=pending):
                 continue
             if pending:
                 self._apply_pending_config()
-            frame = self._mailbox.get(timeout=0.1)
-            if frame is None or self._stop.is_set():
+            self._handoff.wait_until(self._handoff.taken + self._stage_s[1] - self._stage_s[0])
+            frame = self._handoff.hold(self._mailbox, timeout=0.1)
+            if frame is None:
                 continue
+            if self._stop.is_set():
+                self._handoff.release()
+                return
             self._check_stamp(frame)
+            t0 = time.monotonic()
             try:
                 det = self._rec.detect(frame.depth, frame.K, stamp_ns=frame.stamp_ns)
             except InputError as e:
                 self._report(e, frame.header)
-                continue
+                det = None
             except Exception as e:  # noqa: BLE001 - a bad frame must not kill the node
                 self._report(InputError('internal', f'{type(e).__name__}: {e}'), frame.header)
+                det = None
+            if det is None:  # (reported: counted as rejected)
+                self._handoff.release()
                 continue
+            self._stage_time(0, time.monotonic() - t0)
             self._handoff.put((frame, det))
 
     def _run_worker(self):
@@ -468,11 +512,21 @@ class ReconstructorNode(Node):
             item = self._handoff.take(timeout=0.1)
             if item is None:
                 continue
+            t0 = time.monotonic()
             try:
                 if not self._stop.is_set():
                     self._reconstruct(*item)
             finally:
+                self._stage_time(1, time.monotonic() - t0)
                 self._handoff.done()
+
+    def _stage_time(self, stage: int, seconds: float) -> None:
+        """Follow the usual time of a detection (0) and a reconstruction (1): the median of
+        the last STAGE_FRAMES (the occasional slow frame, a further candidate fitted,
+        does not move it)."""
+        times = self._stage_times[stage]
+        times.append(seconds)
+        self._stage_s[stage] = float(np.median(times))
 
     def _reconstruct(self, frame: Frame, det):
         try:
