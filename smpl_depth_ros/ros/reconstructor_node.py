@@ -11,13 +11,14 @@ Topics (relative names, remappable):
 
 Threading: the subscription callbacks only convert the message and drop the frame into a
 one-slot mailbox (a newer frame overwrites a stale one, which is counted as dropped). Two
-worker threads run the core one frame apart: the detector takes the newest frame once the
-reconstructor has taken the previous one, and runs `Reconstructor.detect` (checks, sensor
-noise, person candidates); the reconstructor runs `Reconstructor.reconstruct` (network,
-fit, labels, tracks) and publishes. Their results are those of `Reconstructor.process`
-frame by frame; on two cores the node keeps up about a fifth faster. A changed
-configuration is applied by the detector while both are idle. ROS entities are created
-and destroyed on the main (executor) thread only.
+worker threads run the core one frame apart: once the reconstructor has taken a frame, the
+detector takes the newest one, timed to be done when the reconstructor usually is, and
+runs `Reconstructor.detect` (checks, sensor noise, person candidates); the reconstructor
+runs `Reconstructor.reconstruct` (network, fit, labels, tracks) and publishes. Their
+results are those of `Reconstructor.process` frame by frame; on two cores one person's
+stream is answered about 30 % more often at the same latency. A changed configuration is
+applied by the detector while both are idle. ROS entities are created and destroyed on
+the main (executor) thread only.
 
 Camera distortion: D is read but the depth image is used as is (no undistortion); a
 non-zero D is reported once in the log and in diagnostics.
@@ -483,7 +484,11 @@ class ReconstructorNode(Node):
             if not self._handoff.wait_free(0.1, idle=pending):
                 continue
             if pending:
-                self._apply_pending_config()
+                try:
+                    self._apply_pending_config()
+                except Exception as e:  # noqa: BLE001 - the node keeps its old settings
+                    self._report(InputError('internal', 'applying the new parameters: '
+                                            f'{type(e).__name__}: {e}'))
             self._handoff.wait_until(self._handoff.taken + self._stage_s[1] - self._stage_s[0])
             frame = self._handoff.hold(self._mailbox, timeout=0.1)
             if frame is None:
