@@ -185,8 +185,7 @@ class Tracker:
         if free and rest:
             cost = np.array([[np.linalg.norm(centres[i] - tr.predicted(t)) for tr in free]
                              for i in rest])
-            gate = np.array([self.gate_m + GATE_GROWTH_M_S * max(0.0, t - tr.last_seen)
-                             for tr in free])
+            gate = np.array([self._gate(tr, t) for tr in free])
             big = 1e6
             rows, cols = linear_sum_assignment(np.where(cost <= gate[None], cost, big))
             for r, c in zip(rows, cols):
@@ -197,9 +196,12 @@ class Tracker:
     def near(self, centre: np.ndarray, t: float) -> bool:
         """Whether a live track's predicted centre lies within its gate (as `match`
         widens it) of `centre` at time `t`."""
-        return any(np.linalg.norm(np.asarray(centre) - tr.predicted(t)) <=
-                   self.gate_m + GATE_GROWTH_M_S * max(0.0, t - tr.last_seen)
+        return any(np.linalg.norm(np.asarray(centre) - tr.predicted(t)) <= self._gate(tr, t)
                    for tr in self.tracks)
+
+    def _gate(self, tr: Track, t: float) -> float:
+        """`gate_m`, widened by GATE_GROWTH_M_S for each second `tr` has been unseen."""
+        return self.gate_m + GATE_GROWTH_M_S * max(0.0, t - tr.last_seen)
 
     def new(self, centre: np.ndarray, t: float) -> Track:
         """A new track with the next ID (`seen` then records where it is)."""

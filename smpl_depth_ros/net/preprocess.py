@@ -325,14 +325,14 @@ def _depth_edges(depth: np.ndarray, s: int, noise=None) -> np.ndarray:
         m = -(-length // s)
         jump = np.zeros((n, m * s), bool)  # [:, j]: between pixels j and j + 1
         step = np.abs(np.diff(lines, axis=1))
-        big = step > 0.06 * np.maximum(lines[:, 1:] / 3.0, 1.0) ** 2
+        thr = 0.06 * np.maximum(lines[:, 1:] / 3.0, 1.0) ** 2
+        big = step > thr
         if noise is not None:
             # The noise only raises the threshold: it is needed where the jump passes
             # the noiseless one (a few per cent of the pixels), not everywhere.
             i, j = np.nonzero(big)
-            near = np.maximum(lines[i, j + 1], lines[i, j])
-            big[i, j] = step[i, j] > (0.06 * np.maximum(lines[i, j + 1] / 3.0, 1.0) ** 2
-                                      + 3.0 * noise(near))
+            far = np.maximum(lines[i, j + 1], lines[i, j])
+            big[i, j] = step[i, j] > thr[i, j] + 3.0 * noise(far)
         jump[:, :length - 1] = big
         jump = jump.reshape(n, m, s)  # [:, c, i]: between pixels c * s + i and c * s + i + 1
         edge = jump[:, :, :(s + 1) // 2].any(2)  # i <= (s - 1) / 2: nearer to pixel c
