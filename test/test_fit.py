@@ -397,7 +397,7 @@ def test_a_cold_fit_gives_up_on_a_blob_no_body_explains(body):
     ids = rng.integers(0, len(V), 1500)
     full = Fitter(body).fit(wall, ids)
     quick = Fitter(body).fit(wall, ids, give_up_m=0.135)
-    assert quick.iterations < full.iterations and quick.time_ms < full.time_ms
+    assert quick.iterations < full.iterations
     assert quick.median_residual > 0.09 and full.median_residual > 0.09
     a = Fitter(body).fit(V[front], front)
     b = Fitter(body).fit(V[front], front, give_up_m=0.135)
