@@ -25,7 +25,7 @@ from smpl_depth_ros.fit.freespace import FreeSpace, see_through_share, supportin
 from smpl_depth_ros.net.infer import CorrespondenceNet, broad_weights
 from smpl_depth_ros.net.preprocess import (crop_depth, find_persons, network_input,
                                            pixel_points, split_side_by_side)
-from smpl_depth_ros.refine import (SurfaceParts, facing_camera, near_surface_pixels,
+from smpl_depth_ros.refine import (SurfaceParts, facing_camera, near_surface_pixels, rigid_icp,
                                    refine_correspondences)
 from smpl_depth_ros.segmentation import LabelSurface, paste_labels
 from smpl_depth_ros.sensor_noise import (AutoNoise, NoiseModel, check_sensor, noise_model,
@@ -548,6 +548,14 @@ class Reconstructor:
             fit, vids, tracked = self._fit(pts, vids, stamp_ns, track, free, fitter,
                                            give_up_m=GIVE_UP * reject
                                            if track is None and persons else None)
+            moved = False
+            if fit.median_residual > reject and track is not None:
+                # A tracked person none of whose fits explains the blob (half hidden: the
+                # network's correspondences on part of a body are poor): their last
+                # tracked body, moved into place.
+                held = self._move_held_body(pts, vids, track, t, fitter)
+                if held is not None and held[0].median_residual <= reject:
+                    (fit, vids), tracked, moved = held, True, True
             if fit.median_residual > reject:
                 # The body model cannot explain this blob: not a person (or a failed fit),
                 # or two people side by side in one blob: then try its two halves last.
@@ -584,7 +592,8 @@ class Reconstructor:
                 continue
             # ICP inside the predicted parts on this frame's fitted mesh, then a refit, to
             # which the pixels the network left out join where they lie on the mesh.
-            for _ in range(cfg.fit.tracking_icp_rounds if tracked else cfg.fit.icp_rounds):
+            for _ in range(0 if moved else cfg.fit.tracking_icp_rounds if tracked
+                           else cfg.fit.icp_rounds):
                 front = facing_camera(fit.vertices, self.faces, cfg.fit.icp_front_cos)
                 vids = refine_correspondences(pts, vids, fit.vertices, self.surface, front)
                 xp, xv = near_surface_pixels(d, K, fit.vertices, r, c, crop, self.surface,
@@ -611,7 +620,7 @@ class Reconstructor:
             if track is None:
                 track = self.tracker.new(centre, t)
             if cfg.tracking:
-                track.keep_fit(fit, t, stamp_ns, tracked)
+                track.keep_fit(fit, t, stamp_ns, tracked, moved)
             else:
                 track.fit = None
             timings['fit'] += (time.perf_counter() - tf) * 1e3
@@ -705,6 +714,22 @@ class Reconstructor:
                 return fit, vids, True
         fit = fitter.fit(pts, vids, free_space=free, give_up_m=give_up_m)
         return fit, vids, False
+
+    def _move_held_body(self, pts, vids, track, t: float, fitter):
+        """The track's last tracked body (`Track.held_body`, at most tracking_max_gap_s
+        old), pose and shape held, moved rigidly onto the points `pts` from where its
+        velocity puts it now (`refine.rigid_icp`, its camera-facing vertices; `vids`: the
+        points' vertices from the network). Returns (FitResult, each point's vertex) or
+        None."""
+        held = track.held_body(t, self.config.tracking_max_gap_s)
+        if held is None:
+            return None
+        params, t_held = held
+        base = fitter.fit(pts, vids, init=params, solver='none')
+        front = facing_camera(base.vertices, self.faces, self.config.fit.icp_front_cos)
+        R, shift, vids = rigid_icp(pts, base.vertices, front,
+                                   start=track.velocity * max(0.0, t - t_held))
+        return fitter.fit(pts, vids, init=fitter.moved(params, R, shift), solver='none'), vids
 
     def _sample_shape(self, pts, vids, fit, track, fitter=None) -> None:
         """Every `shape_sample_every`-th tracked frame, a short warm fit with the shape

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from smpl_depth_ros.fit.rig import facing_camera  # noqa: F401  (re-exported)
+from smpl_depth_ros.fit.rig import facing_camera, kabsch  # noqa: F401  (re-exported)
 from smpl_depth_ros.net.preprocess import pixel_points
 from smpl_depth_ros.segmentation import PLANE_M
 
@@ -106,3 +106,26 @@ def near_surface_pixels(d, K, vertices, r, c, crop, surface: SurfaceParts,
     dist, idx = cKDTree(V).query(P, distance_upper_bound=margin)
     ok = np.isfinite(dist)
     return P[ok].astype(np.float32), ids[idx[ok]]
+
+
+def rigid_icp(points: np.ndarray, vertices: np.ndarray, front: np.ndarray | None,
+              iterations: int = 20, max_points: int = 2000, start=None):
+    """The rigid motion (R, t) that best lays a body's mesh `vertices` (V, 3), its
+    camera-facing ones (`front`, None: all) matched, onto `points` (N, 3): point-to-vertex
+    ICP, each round keeping the pairs within 2.5 times the median distance (at least
+    2 cm). Returns (R, t, vertex_ids): every point's nearest facing vertex at the end."""
+    ids = np.flatnonzero(front) if front is not None else np.arange(len(vertices))
+    src = np.asarray(vertices, np.float64)[ids]
+    tree = cKDTree(src)
+    pts = np.asarray(points, np.float64)
+    sub = pts[::max(1, int(np.ceil(len(pts) / max_points)))]
+    R, t = np.eye(3), np.zeros(3) if start is None else np.asarray(start, np.float64)
+    for _ in range(iterations):
+        dist, j = tree.query((sub - t) @ R)  # the points in the mesh's frame
+        keep = dist <= max(2.5 * float(np.median(dist)), 0.02)
+        R2, t2 = kabsch(src[j[keep]], sub[keep], np.ones(int(keep.sum())))
+        done = np.abs(R2 - R).max() < 1e-5 and np.abs(t2 - t).max() < 1e-5
+        R, t = R2, t2
+        if done:
+            break
+    return R, t, ids[tree.query((pts - t) @ R)[1]]

@@ -53,6 +53,8 @@ class Track:
         mask: (H, W) bool, its pixels in the last frame it was seen.
         shapes: [sum of shape samples, count, tracked frames] (the pipeline's mean shape).
         frames: frames it has been seen in.
+        held: (fit, time) of its last tracked fit, the body a frame none of whose fits
+            is accepted may move into place (`held_body`), or None.
     """
 
     id: int
@@ -65,6 +67,7 @@ class Track:
     mask: np.ndarray | None = None
     shapes: list | None = None
     frames: int = 0
+    held: tuple | None = None
 
     def predicted(self, t: float) -> np.ndarray:
         return self.centre + self.velocity * max(0.0, t - self.last_seen)
@@ -88,13 +91,32 @@ class Track:
             init = replace(init, shape=mean.astype(np.asarray(init.shape).dtype))
         return init
 
-    def keep_fit(self, fit, t: float, stamp_ns: int | None, tracked: bool) -> None:
+    def keep_fit(self, fit, t: float, stamp_ns: int | None, tracked: bool,
+                 moved: bool = False) -> None:
         """Keep this frame's fit (time `t`, stamp `stamp_ns`) for the next frame's warm
         start. A cold fit (`tracked` False: a new track, or a lost one) starts the shape
-        samples afresh: the track keeps the cold fit's shape until sampled."""
+        samples afresh: the track keeps the cold fit's shape until sampled. A tracked fit
+        is also the body `held_body` gives, unless it is such a body moved (`moved`)."""
         self.fit, self.fit_time, self.fit_stamp = fit, t, stamp_ns
         if not tracked:
             self.shapes = [np.zeros(len(fit.params.shape)), 0, 0]
+            self.held = None
+        elif not moved:
+            self.held = (fit, t)
+
+    def held_body(self, t: float, max_age_s: float):
+        """(params, time) of the track's last tracked fit, posed at the mean of the shape
+        samples when there are any, if it is at most `max_age_s` older than `t`; else
+        None. A cold fit is no such body: a person found again half hidden is often fitted
+        far off, and moving that body would carry the error on."""
+        if self.held is None or not 0 <= t - self.held[1] <= max_age_s:
+            return None
+        params = self.held[0].params
+        shapes = self.shapes
+        if shapes is not None and shapes[1]:
+            params = replace(params, shape=(shapes[0] / shapes[1]).astype(
+                np.asarray(params.shape).dtype))
+        return params, self.held[1]
 
     def shape_sample_due(self, every: int) -> bool:
         """Count a tracked frame; True when it is the `every`-th since the last shape

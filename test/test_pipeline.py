@@ -5,7 +5,7 @@ import pytest
 from smpl_depth_ros.config import PipelineConfig
 from smpl_depth_ros.pipeline import Reconstructor
 from smpl_depth_ros.synth.camera import get_camera
-from smpl_depth_ros.synth.dataset import make_frame
+from smpl_depth_ros.synth.dataset import make_frame, make_sequence
 from smpl_depth_ros.synth.poses import PoseSampler
 from smpl_depth_ros.types import InputError
 
@@ -373,7 +373,6 @@ def test_a_person_sized_box_is_not_a_further_person(rec, monkeypatch):
     the person is reported, with one ID, and the box, once found to be no person, is
     skipped while it stays put. Without both tests and that memory the box comes back."""
     import smpl_depth_ros.pipeline as pipeline_module
-    from smpl_depth_ros.synth.dataset import make_sequence
 
     def run(crops_seen=None):
         multi = Reconstructor(PipelineConfig(device='cpu', max_persons=3), body=rec.body)
@@ -468,3 +467,33 @@ def test_restart_gives_what_a_fresh_core_gives(rec):
         assert [p.track_id for p in a.persons] == [p.track_id for p in b.persons]
         for p, q in zip(a.persons, b.persons):
             np.testing.assert_array_equal(p.vertices, q.vertices)
+
+
+def test_a_tracked_person_half_hidden_gets_their_last_body_moved_into_place(rec):
+    """A person tracked over four frames, then seen on one side only (the rest hidden):
+    `_move_held_body` lays their last tracked body on those pixels, near the truth, and
+    every pixel takes a vertex facing the camera. A cold fit (no tracked fit held) has no
+    body to move."""
+    from smpl_depth_ros.net.preprocess import pixel_points
+    from smpl_depth_ros.refine import facing_camera
+    seq = make_sequence(rec.body, PoseSampler(rec.body), np.random.default_rng(7),
+                        get_camera('kinect_v1'), 12)
+    rec.reset()
+    frames = [next(seq) for _ in range(6)]
+    for i, f in enumerate(frames[:5]):
+        assert len(rec.process(f['depth'], f['K'], stamp_ns=i * 33_333_333).persons) == 1
+    (track,) = rec.tracker.tracks
+    f = frames[5]
+    d, lab = f['depth'], f['labels']
+    rr, cc = np.nonzero((lab > 0) & (d > 0))
+    side = cc > np.median(cc)
+    pts = pixel_points(rr[side], cc[side], d[rr[side], cc[side]], f['K']).astype(np.float32)
+    vids = f['vertex_ids'][rr[side], cc[side]]
+    t = rec._clock(5 * 33_333_333)
+    fit, ids = rec._move_held_body(pts, vids, track, t, rec.fitter)
+    assert np.linalg.norm(fit.vertices - f['vertices'], axis=1).mean() < 0.05
+    assert fit.median_residual < 0.03 and ids.shape == (len(pts),)
+    front = facing_camera(track.fit.vertices, rec.faces, rec.config.fit.icp_front_cos)
+    assert front is not None and front[ids].mean() > 0.9
+    track.keep_fit(fit, t, 5 * 33_333_333, tracked=False)
+    assert rec._move_held_body(pts, vids, track, t, rec.fitter) is None

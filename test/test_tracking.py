@@ -140,3 +140,29 @@ def test_track_score_counts_misses_false_positives_and_switches():
     s = sc.summary()                                           # 2 need not be found
     assert (s['hits'], s['misses'], s['false_positives'], s['id_switches']) == (3, 2, 1, 1)
     assert s['persons_to_find'] == 5 and abs(s['mota'] - (1 - 4 / 5)) < 1e-9
+
+
+def test_the_held_body_is_the_last_tracked_fit_while_recent():
+    """Track.held_body: the last tracked fit (not a cold one, nor a body moved into
+    place), at the mean of the shape samples, while at most max_age_s old."""
+    from smpl_depth_ros.fit.fitter import FitResult
+    from smpl_depth_ros.types import BodyParams
+
+    def fit(x):
+        p = BodyParams(pose=np.zeros((2, 3), np.float32), shape=np.full(3, x, np.float32),
+                       global_orient=np.zeros(3, np.float32), transl=np.full(3, x, np.float32))
+        return FitResult(params=p, vertices=None, joints=None, residuals=None,
+                         data_term=0.0, energy=0.0, iterations=0, time_ms=0.0,
+                         solver='fast', warm=False)
+    tr = Tracker().new(np.zeros(3), 0.0)
+    tr.keep_fit(fit(1.0), 0.0, None, tracked=False)
+    assert tr.held_body(0.0, 0.5) is None  # a cold fit
+    tr.keep_fit(fit(2.0), 0.1, None, tracked=True)
+    tr.keep_fit(fit(3.0), 0.2, None, tracked=True, moved=True)
+    params, t = tr.held_body(0.3, 0.5)
+    assert t == 0.1 and params.transl[0] == 2.0
+    tr.add_shape_sample(np.full(3, 5.0))
+    assert tr.held_body(0.3, 0.5)[0].shape[0] == 5.0
+    assert tr.held_body(0.7, 0.5) is None  # too old
+    tr.keep_fit(fit(4.0), 0.8, None, tracked=False)
+    assert tr.held_body(0.8, 0.5) is None

@@ -156,6 +156,15 @@ class Fitter(FastSolver):
             self._noisy[key] = f
         return self._noisy[key]
 
+    def moved(self, params: BodyParams, R: np.ndarray, t: np.ndarray) -> BodyParams:
+        """The parameters of the same posed body moved rigidly, x -> R x + t (the root
+        turns about its rest head)."""
+        pivot = self._rest(np.asarray(params.shape))[3][self.rig.levels[0][0]]
+        g = log(R @ rodrigues(np.asarray(params.global_orient, np.float64)))
+        transl = R @ (pivot + np.asarray(params.transl, np.float64)) + t - pivot
+        return BodyParams(pose=params.pose, shape=params.shape,
+                          global_orient=g.astype(np.float32), transl=transl.astype(np.float32))
+
     def joint_frames(self, params: BodyParams) -> tuple[np.ndarray, np.ndarray]:
         """World rotations (J, 3, 3) and positions (J, 3) of the fitted joints (root
         first, the order of `FitResult.joints`) for `params`: the joints' frames for TF."""
