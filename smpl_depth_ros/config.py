@@ -255,6 +255,9 @@ NOT_PERSON_IOU = 0.8  # tracking: a candidate whose blob overlaps one the networ
                       # in (MIN_COLD_SCORE) by this intersection over union is that blob ...
 NOT_PERSON_FRAMES = 10  # ... and is skipped for this many frames after that verdict
 MAX_CLAIMED = 0.5  # a further person: at most this share of its pixels an earlier one's
+HELD_BODY_GAIN = 0.5  # a tracked person whose warm fit failed: their last tracked body moved
+                     # into place replaces the cold fit when its median residual is at most
+                     # this share of the cold fit's (pipeline; validation multi_s31/35)
 GIVE_UP = 1.5  # a new blob beside a person found: its cold fit stops after the first run
                # when that leaves a median target residual above this many times the
                # rejection residual (persons' first runs <= 0.45 times, pieces of the

@@ -16,7 +16,8 @@ import numpy as np
 import torch
 
 from smpl_depth_ros.body import load_body_model
-from smpl_depth_ros.config import (EXTRA_CANDIDATES, GIVE_UP, MAX_CLAIMED, MAX_SEE_THROUGH,
+from smpl_depth_ros.config import (EXTRA_CANDIDATES, GIVE_UP, HELD_BODY_GAIN, MAX_CLAIMED,
+                                   MAX_SEE_THROUGH,
                                    MIN_BEHIND, MIN_BODY_PIXELS, MIN_BODY_SHARE, MIN_COLD_SCORE,
                                    MIN_PART_SHARE, NOT_PERSON_FRAMES, NOT_PERSON_IOU,
                                    SECOND_LOOK_CANDIDATES, PipelineConfig)
@@ -549,12 +550,14 @@ class Reconstructor:
                                            give_up_m=GIVE_UP * reject
                                            if track is None and persons else None)
             moved = False
-            if fit.median_residual > reject and track is not None:
-                # A tracked person none of whose fits explains the blob (half hidden: the
-                # network's correspondences on part of a body are poor): their last
-                # tracked body, moved into place.
+            if track is not None and not tracked:
+                # A tracked person whose warm fit failed (half hidden: the network's
+                # correspondences on part of a body are poor, and a cold fit is often
+                # far off): their last tracked body, moved into place, when it explains
+                # the pixels clearly better (HELD_BODY_GAIN) and passes the test.
                 held = self._move_held_body(pts, vids, track, t, fitter)
-                if held is not None and held[0].median_residual <= reject:
+                if held is not None and held[0].median_residual <= min(
+                        reject, HELD_BODY_GAIN * fit.median_residual):
                     (fit, vids), tracked, moved = held, True, True
             if fit.median_residual > reject:
                 # The body model cannot explain this blob: not a person (or a failed fit),
