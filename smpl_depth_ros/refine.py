@@ -3,7 +3,8 @@
 After the Eq. 2 fit, each of its pixels takes the nearest vertex of the fitted mesh inside
 the part the network predicted (`refine_correspondences`), and the pixels the network left
 out join where they lie on the mesh (`near_surface_pixels`); the pipeline refits to both.
-Both match pixels to vertices facing the camera only (`facing_camera`).
+Both match pixels to vertices facing the camera only (`facing_camera`), as does the rigid
+ICP (`rigid_icp`) that moves a tracked person's last body onto what is seen of them.
 """
 from __future__ import annotations
 

@@ -53,8 +53,8 @@ class Track:
         mask: (H, W) bool, its pixels in the last frame it was seen.
         shapes: [sum of shape samples, count, tracked frames] (the pipeline's mean shape).
         frames: frames it has been seen in.
-        held: (fit, time) of its last tracked fit, the body a frame none of whose fits
-            is accepted may move into place (`held_body`), or None.
+        held: (fit, time) of its last tracked fit, the body moved into place in a frame
+            whose warm fit fails (`held_body`), or None.
     """
 
     id: int

@@ -522,7 +522,7 @@ def test_shipped_pose_gaussian_is_the_committed_command_s_output(body, tmp_path)
 def test_a_body_moved_rigidly_keeps_its_pose_and_shape(body):
     """Fitter.moved: the parameters of the same posed body after x -> R x + t."""
     from scipy.spatial.transform import Rotation
-    rng, V, _, front, (go, tr) = _scene(body, 4, with_params=True)
+    _, V, _, front = _scene(body, 4)
     fitter = Fitter(body)
     params = fitter.fit(V[front], front).params
     at = fitter.fit(V[front], front, init=params, solver='none').vertices

@@ -470,7 +470,7 @@ def test_restart_gives_what_a_fresh_core_gives(rec):
 
 
 def test_a_tracked_person_half_hidden_gets_their_last_body_moved_into_place(rec):
-    """A person tracked over four frames, then seen on one side only (the rest hidden):
+    """A person tracked over five frames, then seen on one side only (the rest hidden):
     `_move_held_body` lays their last tracked body on those pixels, near the truth, and
     every pixel takes a vertex facing the camera. A cold fit (no tracked fit held) has no
     body to move."""
