@@ -729,9 +729,10 @@ def test_reconstruct_oak_hands_over_the_same_messages(rclpy_context, core, perso
                                                   for m in handed}
         err = np.linalg.norm(_mesh_vertices(mesh).mean(0) - person['vertices'].mean(0))
         assert err < 0.1, err
-        # The camera told the reconstructor which sensor it is.
+        # The camera told the reconstructor which sensor it is (the core takes it when
+        # both worker threads are idle).
         assert rec.get_parameter('sensor').value == 'oak_d'
-        assert rec._config.sensor == 'oak_d'
+        assert wait_for(lambda: rec._config.sensor == 'oak_d', 10.0), rec._config.sensor
     finally:
         assert rec.stop() and cam.stop()
         spinner.close()
