@@ -120,6 +120,8 @@ class FrameProcessor:
         self.faces = self.body.faces_numpy()
         self.outputs = FrameOutputs(self.body, self.rec.fitter.joint_frames,
                                     opts, self.msgs)
+        if opts.export_meshes:  # loaded with the model, not in the first frame's time
+            import trimesh  # noqa: F401
 
     def info(self) -> dict:
         return dict(body=self.body.name, device=str(self.rec.device),

@@ -172,9 +172,8 @@ def joint_state_to_params(msg) -> dict[str, Any]:
 
 
 # -- TF --------------------------------------------------------------------------------
-def _transform(f: MsgFactory, header, child: str, R: np.ndarray, t: np.ndarray):
-    from scipy.spatial.transform import Rotation
-    q = Rotation.from_matrix(np.asarray(R, np.float64)).as_quat()  # x, y, z, w
+def _transform(f: MsgFactory, header, child: str, q: np.ndarray, t: np.ndarray):
+    """One TransformStamped: rotation `q` a quaternion (x, y, z, w), translation `t`."""
     return f.new('geometry_msgs/msg/TransformStamped', header=make_header(header, f),
                  child_frame_id=child,
                  transform=f.new('geometry_msgs/msg/Transform',
@@ -197,13 +196,17 @@ def body_transforms(track_id: int, rotations: np.ndarray, positions: np.ndarray,
     R = np.asarray(rotations, np.float64)
     x = np.asarray(positions, np.float64)
     parents = [int(p) for p in np.asarray(parents).reshape(-1)]
+    from scipy.spatial.transform import Rotation
     name = [f'body_{track_id}'] + [f'{j}_{track_id}' for j in list(joint_names)[1:]]
-    out = [_transform(f, header, name[0], R[0], x[0])]
+    p = np.array([0] + parents[1:len(parents)])
+    # Each joint in its parent's frame (the root in the camera's), all at once.
+    Rl = np.concatenate([R[:1], R[p[1:]].transpose(0, 2, 1) @ R[1:len(parents)]])
+    tl = np.concatenate([x[:1], np.einsum('nji,nj->ni', R[p[1:]], x[1:len(parents)] - x[p[1:]])])
+    q = Rotation.from_matrix(Rl).as_quat()  # x, y, z, w
+    out = [_transform(f, header, name[0], q[0], tl[0])]
     for j in range(1, len(parents)):
-        p = parents[j]
-        Rl = R[p].T @ R[j]
-        tl = R[p].T @ (x[j] - x[p])
-        out.append(_transform(f, make_header(header, f, frame_id=name[p]), name[j], Rl, tl))
+        out.append(_transform(f, make_header(header, f, frame_id=name[p[j]]), name[j], q[j],
+                              tl[j]))
     return out
 
 
