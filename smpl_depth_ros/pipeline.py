@@ -555,7 +555,7 @@ class Reconstructor:
                 # correspondences on part of a body are poor, and a cold fit is often
                 # far off): their last tracked body, moved into place, when it explains
                 # the pixels clearly better (HELD_BODY_GAIN) and passes the test.
-                held = self._move_held_body(pts, vids, track, t, fitter)
+                held = self._move_held_body(pts, track, t, fitter)
                 if held is not None and held[0].median_residual <= min(
                         reject, HELD_BODY_GAIN * fit.median_residual):
                     (fit, vids), tracked, moved = held, True, True
@@ -718,19 +718,18 @@ class Reconstructor:
         fit = fitter.fit(pts, vids, free_space=free, give_up_m=give_up_m)
         return fit, vids, False
 
-    def _move_held_body(self, pts, vids, track, t: float, fitter):
+    def _move_held_body(self, pts, track, t: float, fitter):
         """The track's last tracked body (`Track.held_body`, at most tracking_max_gap_s
         old), pose and shape held, moved rigidly onto the points `pts` from where its
-        velocity puts it now (`refine.rigid_icp`, its camera-facing vertices; `vids`: the
-        points' vertices from the network). Returns (FitResult, each point's vertex) or
-        None."""
+        velocity puts it now (`refine.rigid_icp`, its camera-facing vertices). Returns
+        (FitResult, each point's vertex) or None."""
         held = track.held_body(t, self.config.tracking_max_gap_s)
         if held is None:
             return None
         params, t_held = held
-        base = fitter.fit(pts, vids, init=params, solver='none')
-        front = facing_camera(base.vertices, self.faces, self.config.fit.icp_front_cos)
-        R, shift, vids = rigid_icp(pts, base.vertices, front,
+        verts = fitter.vertices(params)
+        front = facing_camera(verts, self.faces, self.config.fit.icp_front_cos)
+        R, shift, vids = rigid_icp(pts, verts, front,
                                    start=track.velocity * max(0.0, t - t_held))
         return fitter.fit(pts, vids, init=fitter.moved(params, R, shift), solver='none'), vids
 

@@ -84,12 +84,15 @@ class Track:
                   0 <= (stamp_ns - prev_stamp) * 1e-9 <= max_gap_s)
         if not gap_ok:
             return None
-        init = self.fit.params
+        return self._at_mean_shape(self.fit.params)
+
+    def _at_mean_shape(self, params):
+        """`params` with the mean of the shape samples, when there are any."""
         shapes = self.shapes
-        if shapes is not None and shapes[1]:  # pose at the mean shape
+        if shapes is not None and shapes[1]:
             mean = shapes[0] / shapes[1]
-            init = replace(init, shape=mean.astype(np.asarray(init.shape).dtype))
-        return init
+            params = replace(params, shape=mean.astype(np.asarray(params.shape).dtype))
+        return params
 
     def keep_fit(self, fit, t: float, stamp_ns: int | None, tracked: bool,
                  moved: bool = False) -> None:
@@ -111,12 +114,7 @@ class Track:
         far off, and moving that body would carry the error on."""
         if self.held is None or not 0 <= t - self.held[1] <= max_age_s:
             return None
-        params = self.held[0].params
-        shapes = self.shapes
-        if shapes is not None and shapes[1]:
-            params = replace(params, shape=(shapes[0] / shapes[1]).astype(
-                np.asarray(params.shape).dtype))
-        return params, self.held[1]
+        return self._at_mean_shape(self.held[0].params), self.held[1]
 
     def shape_sample_due(self, every: int) -> bool:
         """Count a tracked frame; True when it is the `every`-th since the last shape

@@ -488,12 +488,11 @@ def test_a_tracked_person_half_hidden_gets_their_last_body_moved_into_place(rec)
     rr, cc = np.nonzero((lab > 0) & (d > 0))
     side = cc > np.median(cc)
     pts = pixel_points(rr[side], cc[side], d[rr[side], cc[side]], f['K']).astype(np.float32)
-    vids = f['vertex_ids'][rr[side], cc[side]]
     t = rec._clock(5 * 33_333_333)
-    fit, ids = rec._move_held_body(pts, vids, track, t, rec.fitter)
+    fit, ids = rec._move_held_body(pts, track, t, rec.fitter)
     assert np.linalg.norm(fit.vertices - f['vertices'], axis=1).mean() < 0.05
     assert fit.median_residual < 0.03 and ids.shape == (len(pts),)
     front = facing_camera(track.fit.vertices, rec.faces, rec.config.fit.icp_front_cos)
     assert front is not None and front[ids].mean() > 0.9
     track.keep_fit(fit, t, 5 * 33_333_333, tracked=False)
-    assert rec._move_held_body(pts, vids, track, t, rec.fitter) is None
+    assert rec._move_held_body(pts, track, t, rec.fitter) is None

@@ -156,6 +156,13 @@ class Fitter(FastSolver):
             self._noisy[key] = f
         return self._noisy[key]
 
+    def vertices(self, params: BodyParams) -> np.ndarray:
+        """The posed mesh (V, 3) of `params`, float32, as a fit's `FitResult.vertices`."""
+        rot = rodrigues(np.concatenate([np.asarray(params.global_orient, np.float64)[None],
+                                        np.asarray(params.pose, np.float64)]))
+        state = (rot, np.asarray(params.transl, np.float64), np.asarray(params.shape, np.float64))
+        return self._vertices(state)[0].astype(np.float32)
+
     def moved(self, params: BodyParams, R: np.ndarray, t: np.ndarray) -> BodyParams:
         """The parameters of the same posed body moved rigidly, x -> R x + t (the root
         turns about its rest head)."""

@@ -192,19 +192,18 @@ def body_transforms(track_id: int, rotations: np.ndarray, positions: np.ndarray,
     root joint as `body_<id>` parented to the header's frame, every other joint as
     `<joint>_<id>` parented to its parent joint's frame, with the joint's rotation
     (the body model's bone frames) and position."""
-    f = as_factory(msgs)
-    R = np.asarray(rotations, np.float64)
-    x = np.asarray(positions, np.float64)
-    parents = [int(p) for p in np.asarray(parents).reshape(-1)]
     from scipy.spatial.transform import Rotation
+    f = as_factory(msgs)
+    p = np.asarray(parents).reshape(-1).astype(int)
+    R = np.asarray(rotations, np.float64)[:len(p)]
+    x = np.asarray(positions, np.float64)[:len(p)]
     name = [f'body_{track_id}'] + [f'{j}_{track_id}' for j in list(joint_names)[1:]]
-    p = np.array([0] + parents[1:len(parents)])
     # Each joint in its parent's frame (the root in the camera's), all at once.
-    Rl = np.concatenate([R[:1], R[p[1:]].transpose(0, 2, 1) @ R[1:len(parents)]])
-    tl = np.concatenate([x[:1], np.einsum('nji,nj->ni', R[p[1:]], x[1:len(parents)] - x[p[1:]])])
+    Rl = np.concatenate([R[:1], R[p[1:]].transpose(0, 2, 1) @ R[1:]])
+    tl = np.concatenate([x[:1], np.einsum('nji,nj->ni', R[p[1:]], x[1:] - x[p[1:]])])
     q = Rotation.from_matrix(Rl).as_quat()  # x, y, z, w
     out = [_transform(f, header, name[0], q[0], tl[0])]
-    for j in range(1, len(parents)):
+    for j in range(1, len(p)):
         out.append(_transform(f, make_header(header, f, frame_id=name[p[j]]), name[j], q[j],
                               tl[j]))
     return out
