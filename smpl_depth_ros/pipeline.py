@@ -19,7 +19,8 @@ from smpl_depth_ros.body import load_body_model
 from smpl_depth_ros.config import (EXTRA_CANDIDATES, GIVE_UP, HELD_BODY_GAIN, MAX_CLAIMED,
                                    MAX_SEE_THROUGH,
                                    MIN_BEHIND, MIN_BODY_PIXELS, MIN_BODY_SHARE, MIN_COLD_SCORE,
-                                   MIN_PART_SHARE, NOT_PERSON_FRAMES, NOT_PERSON_IOU,
+                                   MIN_PART_SHARE, NEAREST_CANDIDATES, NOT_PERSON_FRAMES,
+                                   NOT_PERSON_IOU,
                                    SECOND_LOOK_CANDIDATES, PipelineConfig)
 from smpl_depth_ros.fit import Fitter, backproject  # noqa: F401  (re-exported)
 from smpl_depth_ros.fit.freespace import FreeSpace, see_through_share, supporting_planes
@@ -318,6 +319,7 @@ class Reconstructor:
         noise = self._noise_for(d, K)
         crops = find_persons(d, K, cfg.depth_min, cfg.depth_max, cfg.min_person_pixels,
                              max_persons=max(cfg.max_persons, 1) + EXTRA_CANDIDATES,
+                             nearest=NEAREST_CANDIDATES,
                              noise=None if noise is None else noise.excess)
         return Detection(d, K, stamp_ns, self._frames, noise, self.net, crops,
                          (time.perf_counter() - t0) * 1e3)
@@ -356,7 +358,7 @@ class Reconstructor:
             tp = time.perf_counter()
             again = find_persons(d, K, cfg.depth_min, cfg.depth_max, cfg.min_person_pixels,
                                  max_persons=max(cfg.max_persons, 1) + SECOND_LOOK_CANDIDATES,
-                                 peel=True, noise=excess)
+                                 nearest=NEAREST_CANDIDATES, peel=True, noise=excess)
             tried = [(int(o.mask.sum()), o.mask) for o in crops]
             sizes = [int(c.mask.sum()) for c in again]
             new = [c for c, n in zip(again, sizes) if not any(
@@ -656,10 +658,11 @@ class Reconstructor:
 
         While a person is tracked, the candidate that covers most of its previous pixels
         comes first (no network needed). Otherwise the network runs on every candidate
-        and they are ordered by how much of a body it sees: the share of the blob's own
-        pixels it labels as body times the number of parts covering >= 2 % of them
-        (background objects get few parts); the most central candidate is not always the
-        person.
+        (but the nearest ones kept beyond the most central, `Crop.nearest`, which follow
+        them unranked) and they are ordered by how much of a body it sees: the share of
+        the blob's own pixels it labels as body times the number of parts covering >= 2 %
+        of them (background objects get few parts); the most central candidate is not
+        always the person.
 
         Returns (crops, network inputs, labels, coords, plain): the outputs are filled for
         the candidates the network already ran on; ranking uses the plain pass only, so
@@ -674,8 +677,13 @@ class Reconstructor:
                                    kind='stable')
                 return [crops[i] for i in order], [], [], [], {}
             return crops, [], [], [], {}
+        # The nearest candidates kept beyond the most central ones come after those,
+        # unranked (a piece of a near person split off by a depth jump would otherwise
+        # outrank their main blob).
+        extra = [c for c in crops if c.nearest]
+        crops = [c for c in crops if not c.nearest]
         if len(crops) <= self.config.max_persons:  # each will be tried: no ranking needed
-            return crops, [], [], [], {}
+            return crops + extra, [], [], [], {}
         tn = time.perf_counter()
         x = np.stack([network_input(crop_depth(d, c), c.median_depth) for c in crops])
         tta = self.config.flip_tta
@@ -690,8 +698,8 @@ class Reconstructor:
         order = np.lexsort((score, [c.behind for c in crops]))
         plain = ({k: (probs[i:i + 1], rc[i:i + 1]) for k, i in enumerate(order)}
                  if tta else {})
-        return ([crops[i] for i in order], [x[i] for i in order], [lab[i] for i in order],
-                [coords[i] for i in order], plain)
+        return ([crops[i] for i in order] + extra, [x[i] for i in order],
+                [lab[i] for i in order], [coords[i] for i in order], plain)
 
     def _fit(self, pts, vids, stamp_ns, track=None, free=None, fitter=None, give_up_m=None):
         """Fit one person: warm-started from the previous frame while the track holds

@@ -289,11 +289,12 @@ def test_surface_distance_is_zero_for_a_mesh_and_its_shift():
     assert 0.01 < med < 0.05
 
 
-def test_stored_far_stereo_frame_is_reconstructed():
+def test_stored_far_stereo_frame_is_reconstructed(monkeypatch):
     """test/data/stereo_d435_far.npz: a RealSense D435 person at 3.6-4 m. With the fixed
     Kinect thresholds (sensor 'none') and the original network alone no fit is accepted;
     with the shipped default (sensor 'auto', the noise measured from this one frame) the
     mesh is near the truth."""
+    from smpl_depth_ros import pipeline
     from smpl_depth_ros.config import PipelineConfig
     from smpl_depth_ros.net.infer import broad_weights, default_weights
     from smpl_depth_ros.pipeline import Reconstructor
@@ -316,9 +317,11 @@ def test_stored_far_stereo_frame_is_reconstructed():
                                          weights_path=default_weights('anny')), body=rec.body)
     given.process(depth, f['K'])
     assert given.noise.kind == 'stereo' and given.net.path == default_weights('anny')
-    # fixed Kinect thresholds and the original network alone, one person wanted: no fit
-    # is accepted (with `second_network`, the default, the broad network's is, as the
-    # last look; with max_persons 3, the default, more candidates are tried at once)
+    # fixed Kinect thresholds and the original network alone, one person wanted, the
+    # most central candidates only: no fit is accepted (with `second_network`, the
+    # default, the broad network's is, as the last look; with max_persons 3, the
+    # default, or with the nearest candidates too, the person is found)
+    monkeypatch.setattr(pipeline, 'NEAREST_CANDIDATES', 0)
     fixed = Reconstructor(PipelineConfig(tracking=False, device='cpu', sensor='none',
                                          second_network=False, max_persons=1),
                           body=rec.body)
@@ -358,13 +361,14 @@ def test_a_pose_the_first_network_fails_on_is_reconstructed_by_the_second():
         given.process(depth, f['K'])
 
 
-def test_a_person_less_central_than_three_scene_pieces_is_found():
+def test_a_person_less_central_than_three_scene_pieces_is_found(monkeypatch):
     """test/data/off_centre_d435.npz: a D435 person at 3.2 m left of the image centre, a
     box beside them at the same depth, wall pieces and boxes nearer the centre. The
     person's blob merged with the box is too wide for one person, so the component
-    alone is the candidate; the first pass keeps the 3 most central candidates, none of
-    them the person, and the second look takes more (one person wanted: with max_persons
-    3, the default, the first pass tries 5 candidates)."""
+    alone is the candidate. One person wanted, the first pass keeps the 3 most central
+    candidates, none of them the person, and the 2 nearest of the others
+    (NEAREST_CANDIDATES), one of them the person; without those, the second look, which
+    takes more candidates, finds them; without either, nobody is found."""
     from smpl_depth_ros import pipeline
     from smpl_depth_ros.config import PipelineConfig
     from smpl_depth_ros.types import InputError
@@ -372,12 +376,40 @@ def test_a_person_less_central_than_three_scene_pieces_is_found():
     depth = f['depth_mm'] / 1000.0
     cfg = PipelineConfig(tracking=False, device='cpu', sensor='realsense_d435', max_persons=1)
     rec = pipeline.Reconstructor(cfg)
-    p = rec.process(depth, f['K']).persons[0]
-    assert np.linalg.norm(p.vertices - f['vertices'], axis=1).mean() < 0.06
-    with pytest.raises(InputError):  # without the second look's extra candidates
-        orig = pipeline.SECOND_LOOK_CANDIDATES
-        try:
-            pipeline.SECOND_LOOK_CANDIDATES = pipeline.EXTRA_CANDIDATES
-            pipeline.Reconstructor(cfg, body=rec.body).process(depth, f['K'])
-        finally:
-            pipeline.SECOND_LOOK_CANDIDATES = orig
+    for nearest, second_look in ((pipeline.NEAREST_CANDIDATES, pipeline.EXTRA_CANDIDATES),
+                                 (0, pipeline.SECOND_LOOK_CANDIDATES)):
+        monkeypatch.setattr(pipeline, 'NEAREST_CANDIDATES', nearest)
+        monkeypatch.setattr(pipeline, 'SECOND_LOOK_CANDIDATES', second_look)
+        p = pipeline.Reconstructor(cfg, body=rec.body).process(depth, f['K']).persons[0]
+        assert np.linalg.norm(p.vertices - f['vertices'], axis=1).mean() < 0.06
+    monkeypatch.setattr(pipeline, 'SECOND_LOOK_CANDIDATES', pipeline.EXTRA_CANDIDATES)
+    with pytest.raises(InputError):
+        pipeline.Reconstructor(cfg, body=rec.body).process(depth, f['K'])
+
+
+def test_a_near_person_at_the_side_is_a_candidate_beside_far_wall_pieces():
+    """test/data/three_people_d435.npz: three people (1.8, 3.0 and 4.4 m) before a back
+    wall about 6 m away that the D435's noise breaks into a dozen person-sized pieces,
+    most of them nearer the image centre than the nearest person, at the right edge. The
+    first pass's candidates, the most central (max_persons 3 + EXTRA_CANDIDATES) and the
+    NEAREST_CANDIDATES nearest of the others, hold all three people, and all three are
+    reconstructed; the most central alone do not hold the near one."""
+    from smpl_depth_ros.config import EXTRA_CANDIDATES, NEAREST_CANDIDATES, PipelineConfig
+    from smpl_depth_ros.net.preprocess import find_persons
+    from smpl_depth_ros.pipeline import Reconstructor
+    f = np.load('test/data/three_people_d435.npz')
+    depth, K, who = f['depth_mm'] / 1000.0, f['K'], f['person_index']
+    cfg = PipelineConfig(tracking=False, device='cpu', max_persons=3)
+
+    def people_in_candidates(nearest):
+        crops = find_persons(depth, K, cfg.depth_min, cfg.depth_max, cfg.min_person_pixels,
+                             max_persons=cfg.max_persons + EXTRA_CANDIDATES, nearest=nearest)
+        return {k for c in crops for k in range(3)
+                if (c.mask & (who == k)).sum() > 0.5 * (who == k).sum()}
+    assert people_in_candidates(NEAREST_CANDIDATES) == {0, 1, 2}
+    assert 2 not in people_in_candidates(0)
+    persons = Reconstructor(cfg).process(depth, K).persons
+    gaps = np.linalg.norm(f['pelvis'][None] - np.array([p.joints[0] for p in persons])[:, None],
+                          axis=2)  # (found, true) pelvis distances
+    assert sorted(gaps.argmin(1)) == [0, 1, 2]
+    assert gaps.min(1).max() < 0.3
