@@ -566,7 +566,6 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
             depth-jump and plane-inlier thresholds widen with it (see those steps), and
             when it is above 0 at the frame's median depth, small holes are filled first
             (`fill_small_holes`).
-
         nearest: beyond the max_persons most central candidates, this many of the
             others, the nearest (step 5).
 
