@@ -59,7 +59,8 @@ class Detection:
         index: the frame's number since the core was loaded or restarted (from 1).
         noise: the sensor noise model for this frame (None: default thresholds).
         net: the correspondence network for this frame (the sensor class decides).
-        crops: the person candidates (net.preprocess.Crop), most central first.
+        crops: the person candidates (net.preprocess.Crop), most central first, then the
+            nearest of the others (`Crop.nearest`).
         ms: time the detection took.
     """
 
