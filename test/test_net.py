@@ -447,3 +447,30 @@ def test_train_correspondence_runs_checkpoints_and_resumes(body, tmp_path):
     avg.update(b)
     assert torch.allclose(avg.net.weight, 0.75 * a.weight + 0.25 * b.weight)
     assert train.class_weights(labels, 0.0) is None
+
+
+def test_small_holes_are_filled_from_their_nearest_valid_pixel_and_wide_gaps_stay():
+    """fill_small_holes: an invalid pixel inside the valid region's closing by a 5x5 square
+    (scipy's binary_closing, outside the image counted valid) takes its nearest valid
+    pixel's depth; every other pixel keeps its own (random masks of any shape)."""
+    from scipy import ndimage
+
+    from smpl_depth_ros.net.preprocess import fill_small_holes
+    rng = np.random.default_rng(0)
+    for _ in range(100):
+        h, w = rng.integers(1, 60, 2)
+        d = np.where(rng.random((h, w)) < rng.random(), 0.0,
+                     rng.uniform(0.5, 5.0, (h, w))).astype(np.float32)
+        valid = d > 0
+        holes = ndimage.binary_closing(valid, np.ones((5, 5), bool), border_value=1) & ~valid
+        out = fill_small_holes(d)
+        assert np.array_equal(out[~holes], d[~holes])
+        if holes.any():
+            r, c = ndimage.distance_transform_edt(~valid, return_distances=False,
+                                                  return_indices=True)
+            assert np.array_equal(out[holes], d[r[holes], c[holes]])
+    d = np.full((20, 20), 2.0, np.float32)
+    d[5:15, 8:14] = 0.0  # a gap 6 pixels wide: not a small hole
+    d[2, 2] = 0.0
+    out = fill_small_holes(d)
+    assert out[2, 2] == 2.0 and (out[5:15, 8:14] == 0).all()
