@@ -17,10 +17,9 @@ import torch
 
 from smpl_depth_ros.body import load_body_model
 from smpl_depth_ros.config import (EXTRA_CANDIDATES, GIVE_UP, HELD_BODY_GAIN, MAX_CLAIMED,
-                                   MAX_SEE_THROUGH,
-                                   MIN_BEHIND, MIN_BODY_PIXELS, MIN_BODY_SHARE, MIN_COLD_SCORE,
-                                   MIN_PART_SHARE, NEAREST_CANDIDATES, NOT_PERSON_FRAMES,
-                                   NOT_PERSON_IOU,
+                                   MAX_SEE_THROUGH, MIN_BEHIND, MIN_BODY_PIXELS,
+                                   MIN_BODY_SHARE, MIN_COLD_SCORE, MIN_PART_SHARE,
+                                   NEAREST_CANDIDATES, NOT_PERSON_FRAMES, NOT_PERSON_IOU,
                                    SECOND_LOOK_CANDIDATES, PipelineConfig)
 from smpl_depth_ros.fit import Fitter, backproject  # noqa: F401  (re-exported)
 from smpl_depth_ros.fit.freespace import FreeSpace, see_through_share, supporting_planes
