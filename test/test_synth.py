@@ -1,4 +1,6 @@
 """Synthetic data: camera, ray-cast renderer, background, noise model, frames (no ROS)."""
+import dataclasses
+
 import numpy as np
 import pytest
 import trimesh
@@ -301,3 +303,41 @@ def test_render_panel(tmp_path, body):
     path = tmp_path / 'p.png'
     img.save(path)
     assert Image.open(path).size == img.size
+
+
+def test_a_seated_body_gets_a_chair_under_it(body):
+    """Pose mode 'seated' with SynthParams.chairs: a chair whose seat touches the
+    buttocks and whose legs reach the floor, nothing of the body inside the seat, the
+    same person as without it; a standing body gets none."""
+    seated = PoseSampler(body, mode='seated')
+    parts = body.part_labels.cpu().numpy()
+    up = np.array([0.0, -1.0, 0.0])
+    p = dataset.SynthParams(chairs=True, depth_range=(2.0, 3.0))
+    found = 0
+    for seed in range(6):
+        a = dataset.make_frame(body, seated, np.random.default_rng(seed), CAM, noise=False,
+                               params=p)
+        b = dataset.make_frame(body, seated, np.random.default_rng(seed), CAM, noise=False,
+                               params=dataclasses.replace(p, chairs=False))
+        np.testing.assert_array_equal(a['vertices'], b['vertices'])  # the same person
+        v = a['vertices'].astype(np.float64)
+        up = dataset._up_axis(body, a['global_orient'])
+        chair = render.chair_under(v, parts, up, np.random.default_rng(0))
+        if chair is None:
+            continue
+        found += 1
+        h, hc = v @ up, chair.vertices @ up
+        assert abs(hc.min() - h.min()) < 1e-6  # legs on the floor under the feet
+        on_seat = v[np.isin(parts, render.SEAT_PARTS)] @ up
+        seat_top = on_seat.min() - 0.003
+        assert np.isclose(hc[hc < seat_top + 1e-6].max(), seat_top, atol=1e-6)
+        # The chair is seen: pixels that are neither body nor room without it.
+        assert ((a['depth'] != b['depth']) & (a['vertex_ids'] < 0)).sum() > 50
+    assert found >= 4
+    stand = PoseSampler(body).template('stand')
+    from smpl_depth_ros.synth.poses import placement
+    go, tr = placement(body, np.zeros(body.num_shape), 0.3, 0.0, 0.0, np.array([0, 0, 2.5]))
+    v, _ = dataset._forward(body, PoseSampler(body).to_model(stand[None])[0],
+                            np.zeros(body.num_shape), go, tr)
+    assert render.chair_under(v, parts, np.array([0.0, -1.0, 0.0]),
+                              np.random.default_rng(0)) is None

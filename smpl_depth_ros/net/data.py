@@ -24,7 +24,7 @@ from smpl_depth_ros.net.unet import INPUT_SIZE
 from smpl_depth_ros.synth.camera import CAMERAS, Camera
 from smpl_depth_ros.synth.noise import NoiseParams, apply_noise
 from smpl_depth_ros.synth.poses import PoseSampler, placement, sample_shape
-from smpl_depth_ros.synth.render import render_body, sample_background
+from smpl_depth_ros.synth.render import chair_under, render_body, sample_background
 from smpl_depth_ros.synth.sensors import SENSORS, hair_vertices
 
 
@@ -51,6 +51,9 @@ class SampleConfig:
                                      # fine-tune keeps what the shipped network learned
     resolution: tuple[float, float] = (0.5, 1.5)  # sensor image scale (640x480 preset:
                                      # 320x240 to 960x720), uniform
+    chairs: float = 0.0              # probability that a sample is a person seated on a
+                                     # chair (PoseSampler mode 'seated' and
+                                     # synth.render.chair_under, in a room or alone)
 
 
 def crop_noise_params(scale: float) -> NoiseParams:
@@ -109,6 +112,8 @@ class SampleMaker:
         self.template_sampler = (PoseSampler(body, head_turn_deg=cfg.head_turn_deg)
                                  if cfg.rehearse > 0 else self.sampler)
         self.hair = hair_vertices(body) if self.sensors else None
+        self.seated = PoseSampler(body, head_turn_deg=cfg.head_turn_deg, mode='seated') \
+            if cfg.chairs > 0 else None
 
     def _sensor(self, rng):
         """A random sensor (a class uniformly, then one of its presets) at a random
@@ -135,6 +140,9 @@ class SampleMaker:
         else:
             cam = self.cameras[rng.integers(len(self.cameras))]
             pose, root_tilt = self.template_sampler.sample(rng, 1), np.zeros(2)
+        seated = cfg.chairs > 0 and rng.random() < cfg.chairs
+        if seated:
+            pose, root_tilt = self.seated.sample(rng, 1), np.zeros(2)
         shape = sample_shape(body, rng, 1)
         dlo, dhi = cfg.depth_range
         if sensor is not None:
@@ -162,6 +170,10 @@ class SampleMaker:
         bg = None
         if rng.random() < cfg.background:
             bg = sample_background(rng, cam, out.joints[0, 0].cpu().numpy(), V)
+        if seated:
+            chair = chair_under(V, self.parts, np.array([0.0, -1.0, 0.0]), rng)
+            if chair is not None:
+                bg = chair if bg is None else bg + chair
         r = render_body(V, self.faces, self.parts, ccam, bg)
         depth, labels, vids = r.depth, r.labels, r.vertex_ids
         if cfg.noise and sensor is not None:

@@ -180,6 +180,9 @@ def main(argv=None):
                     help='with --sensors: share of samples drawn from the original protocol '
                          '(template poses, Kinect v1 noise) so a fine-tune keeps what the '
                          'initial weights learned (SampleConfig.rehearse; default 0)')
+    ap.add_argument('--chairs', type=float, default=0.0, metavar='P',
+                    help='share of samples (training and validation) that are a person '
+                         'seated on a chair (SampleConfig.chairs; default 0)')
     ap.add_argument('--workers', type=int, default=max(1, (os.cpu_count() or 2) - 1))
     ap.add_argument('--device', default='auto', choices=['auto', 'cpu', 'cuda'])
     ap.add_argument('--seed', type=int, default=7)
@@ -231,7 +234,7 @@ def main(argv=None):
     if unknown:
         ap.error(f'unknown sensors {unknown}; presets: {sorted(SENSORS)}')
     scfg = SampleConfig(head_turn_deg=args.head_turn, poses=args.poses, sensors=sensors,
-                        rehearse=args.rehearse)
+                        rehearse=args.rehearse, chairs=args.chairs)
     val = make_fixed_set(body, args.val_size, args.val_seed, scfg)
     print(f'validation set: {args.val_size} samples in {time.time() - t_val:.1f} s',
           file=sys.stderr)
@@ -248,6 +251,7 @@ def main(argv=None):
                 body_vertices=int(body.num_vertices), seed=args.seed, val_seed=args.val_seed,
                 truncate=tcfg.truncate, poses=tcfg.poses, sensors=list(tcfg.sensors),
                 rehearse=tcfg.rehearse, head_turn_deg=tcfg.head_turn_deg,
+                chairs=tcfg.chairs,
                 command='train_correspondence ' + ' '.join(argv if argv is not None
                                                             else sys.argv[1:]))
     try:

@@ -46,6 +46,8 @@ class SynthParams:
         sensor: a `synth.sensors.Sensor` whose noise model replaces `noise` (any class:
             structured light, stereo, time of flight), at `strength` (1 = nominal).
         background: scene layout parameters.
+        chairs: with a background, a seated body gets a chair under it
+            (`synth.render.chair_under`; pose mode 'seated').
     """
 
     depth_range: tuple[float, float] = (1.0, 5.0)
@@ -60,6 +62,7 @@ class SynthParams:
     strength: float = 1.0
     background: render_mod.BackgroundParams = field(
         default_factory=render_mod.BackgroundParams)
+    chairs: bool = False
 
 
 def root_depth_range(camera: Camera, p: SynthParams) -> tuple[float, float]:
@@ -214,6 +217,10 @@ def make_frame(body: BodyModel, sampler: PoseSampler, rng: np.random.Generator,
     if background:
         scene = render_mod.sample_background(np.random.default_rng(scene_seed), camera,
                                              joints[0], verts, up, p.background)
+        if p.chairs:
+            chair = render_mod.chair_under(verts, body.part_labels.cpu().numpy(), up,
+                                           np.random.default_rng([scene_seed, 1]))
+            scene = scene if chair is None else scene + chair
     return _finish(body, camera, verts, joints, pose, shape, go, transl, scene, noise, p,
                    np.random.default_rng(noise_seed))
 

@@ -14,6 +14,11 @@ generic joint names. Two distributions (`PoseSampler(mode=...)`):
   independently per joint or left/right coupled (elbows and knees as hinges, within
   their flexion range). Postures with a whole-body tilt (on all fours, lying) carry a
   root pitch or roll (`ROOT`, degrees) that the frame placement adds;
+* 'seated': people on a chair (`SEATED_TEMPLATES`: upright, leaning forward with the
+  forearms on the knees, leaning back, legs apart or stretched out, reaching, arms
+  crossed, a phone), with amplitudes that keep them seated; `synth.dataset` puts a chair
+  (`synth.render.chair_under`) under them. No network was trained on these: they measure
+  a person merged with the furniture they sit on;
 * 'mocap': real motion capture retargeted to anny (`data/mocap_poses_anny.npz`, written
   by tools/export_mocap_poses from the climbing clips of holosoma-retargeting: 1,264
   poses), mirrored at random, with a little noise, upright. For evaluation on motions
@@ -26,7 +31,7 @@ import torch
 
 from smpl_depth_ros.body.base import BodyModel
 
-MODES = ('templates', 'broad', 'mocap')
+MODES = ('templates', 'broad', 'seated', 'mocap')
 
 # Activity templates: generic joint -> canonical axis-angle in degrees. 'ELBOW' entries
 # are hinge flexion angles (about the elbow's own flexion axis), handled separately.
@@ -121,7 +126,34 @@ BROAD_TEMPLATE_WEIGHTS = {'kneel': 1.0, 'kneel_one': 1.0, 'squat_deep': 1.0,
 # 'broad' mixture: activity templates, broad postures, independent and coupled uniform
 # draws within the joint limits.
 BROAD_MIX = {'templates': 0.3, 'postures': 0.35, 'uniform': 0.15, 'coupled': 0.2}
-_ALL_TEMPLATES = {**TEMPLATES, **BROAD_TEMPLATES}
+# Seated on a chair (mode 'seated'): hips flexed 70-100 deg, thighs on the seat.
+_SIT = {'left_hip': (-90, 0, 8), 'right_hip': (-90, 0, -8), 'left_knee': (90, 0, 0),
+        'right_knee': (90, 0, 0)}
+SEATED_TEMPLATES = {
+    'seat_upright': {**_SIT, 'spine1': (5, 0, 0), 'left_shoulder': (-20, 0, 5),
+                     'right_shoulder': (-20, 0, -5), 'ELBOW': (70, 70)},
+    'seat_lean_forward': {**_SIT, 'left_hip': (-100, 0, 12), 'right_hip': (-100, 0, -12),
+                          'left_knee': (95, 0, 0), 'right_knee': (95, 0, 0),
+                          'spine1': (30, 0, 0), 'spine2': (10, 0, 0),
+                          'left_shoulder': (-50, 0, 0), 'right_shoulder': (-50, 0, 0),
+                          'ELBOW': (100, 100)},
+    'seat_lean_back': {**_SIT, 'left_hip': (-75, 0, 10), 'right_hip': (-75, 0, -10),
+                       'left_knee': (80, 0, 0), 'right_knee': (80, 0, 0),
+                       'spine1': (-10, 0, 0), 'ELBOW': (30, 30)},
+    'seat_legs_apart': {**_SIT, 'left_hip': (-90, 0, 30), 'right_hip': (-90, 0, -30),
+                        'left_knee': (100, 0, 0), 'right_knee': (100, 0, 0),
+                        'spine1': (10, 0, 0), 'ELBOW': (50, 50)},
+    'seat_legs_out': {**_SIT, 'left_hip': (-80, 0, 10), 'right_hip': (-80, 0, -10),
+                      'left_knee': (35, 0, 0), 'right_knee': (45, 0, 0),
+                      'ELBOW': (40, 40)},
+    'seat_reach': {**_SIT, 'spine1': (15, 0, 0), 'left_shoulder': (-85, 0, 20),
+                   'right_shoulder': (-30, 0, 0), 'ELBOW': (10, 60)},
+    'seat_arms_crossed': {**_SIT, 'left_shoulder': (-45, 0, -20),
+                          'right_shoulder': (-45, 0, 20), 'ELBOW': (115, 115)},
+    'seat_phone': {**_SIT, 'spine1': (15, 0, 0), 'left_shoulder': (-30, 0, 20),
+                   'ELBOW': (145, 60), 'head': (20, 0, 0), 'neck': (15, 0, 0)},
+}
+_ALL_TEMPLATES = {**TEMPLATES, **BROAD_TEMPLATES, **SEATED_TEMPLATES}
 _MIRROR_AXES = np.array([1.0, -1.0, -1.0])  # reflection x -> -x of an axis-angle vector
 
 
@@ -272,6 +304,10 @@ class PoseSampler:
         root = np.zeros(2)
         if self.mode == 'templates':
             return self.sample_canonical(rng), root
+        if self.mode == 'seated':
+            names = list(SEATED_TEMPLATES)
+            return self._from_templates(rng, names, np.full(len(names), 1 / len(names)),
+                                        9.0, amp=(0.85, 1.1)), root
         if self.mode == 'mocap':
             pose = self.mocap[rng.integers(len(self.mocap))].astype(np.float64)
             self.last_mirror = bool(rng.random() < 0.5)
@@ -313,7 +349,7 @@ class PoseSampler:
 
     def sample_canonical(self, rng: np.random.Generator) -> np.ndarray:
         """(P, 3) canonical pose (any whole-body tilt of a 'broad' posture dropped)."""
-        if self.mode in ('broad', 'mocap'):
+        if self.mode in ('broad', 'seated', 'mocap'):
             return self.sample_with_root(rng)[0]
         t = self.templates[rng.choice(len(self.templates), p=self.weights)]
         amp = rng.uniform(0.3, 1.15)

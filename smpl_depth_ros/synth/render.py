@@ -253,6 +253,75 @@ def sample_background(rng: np.random.Generator, camera: Camera, person_root: np.
     return scene
 
 
+SEAT_PARTS = (2, 9, 10)  # torso and upper legs (body.parts): what rests on a seat
+
+
+def chair_under(vertices: np.ndarray, part_labels: np.ndarray, up: np.ndarray,
+                rng: np.random.Generator) -> Background | None:
+    """A chair under a seated body, or None when the body is not seated (a thigh
+    within 40 deg of vertical, or the buttocks less than 0.15 m above the feet).
+
+    The seat's top touches the lowest point of the torso and thighs, from just behind
+    the buttocks to under the thighs (0.38-0.48 m deep, ending 0.12 m behind the knees'
+    front, 0.42-0.52 m wide), on four legs
+    down to the body's lowest point (the floor under its feet); a backrest behind the
+    back (0.3-0.6 m high) two times in three. The chair faces the way the thighs point.
+
+    Args:
+        vertices: (V, 3) posed body, optical frame, metres.
+        part_labels: (V,) part class per vertex (body.parts).
+        up: (3,) the floor normal, pointing up.
+        rng: random generator (sizes, the backrest).
+    """
+    v = np.asarray(vertices, np.float64)
+    up = np.asarray(up, np.float64) / np.linalg.norm(up)
+    h = v @ up
+    floor = float(h.min())
+    torso = v[part_labels == 2]
+    thighs = v[np.isin(part_labels, (9, 10))]
+    if len(torso) == 0 or len(thighs) == 0:
+        return None
+    fwd = np.zeros(3)
+    for thigh, shin in ((9, 11), (10, 12)):  # each thigh's long axis, towards its knee
+        t, k = v[part_labels == thigh], v[part_labels == shin]
+        if len(t) < 3 or len(k) == 0:
+            return None
+        axis = np.linalg.svd(t - t.mean(0), full_matrices=False)[2][0]
+        axis *= np.sign(axis @ (k.mean(0) - t.mean(0))) or 1.0
+        if abs(axis @ up) > 0.75:
+            return None  # a thigh within 40 deg of vertical: not seated
+        fwd += axis
+    fwd -= (fwd @ up) * up
+    fwd /= np.linalg.norm(fwd)
+    right = np.cross(fwd, up)
+    seat = v[np.isin(part_labels, SEAT_PARTS)]
+    top = float((seat @ up).min()) - 0.003
+    if top - floor < 0.15:
+        return None
+    low = seat[seat @ up < top + 0.25]  # the buttocks and the thighs' undersides
+    back = float((low @ fwd).min())
+    depth, width = rng.uniform(0.38, 0.48), rng.uniform(0.42, 0.52)
+    a_mid = float(thighs.mean(0) @ right)
+    b0 = back - 0.04
+    depth = min(depth, float((thighs @ fwd).max()) - 0.12 - b0)  # behind the knees
+    base = floor * up + a_mid * right + (b0 + depth / 2) * fwd
+    thick, leg = 0.04, 0.035
+    chair = _box(base + (top - thick - floor) * up, right, fwd, up, (width, depth, thick), 0.0)
+    for i in (-1, 1):
+        for j in (-1, 1):
+            c = base + i * (width / 2 - leg) * right + j * (depth / 2 - leg) * fwd
+            chair = chair + _box(c, right, fwd, up, (leg, leg, top - thick - floor), 0.0)
+    if rng.random() < 2 / 3:
+        spine = torso[torso @ up > top + 0.05]
+        if len(spine):
+            b_back = min(float((spine @ fwd).min()), back) - 0.01
+            c = floor * up + a_mid * right + (b_back - 0.015) * fwd + (top - floor) * up
+            chair = chair + _box(c, right, fwd, up, (width, 0.03, rng.uniform(0.3, 0.6)),
+                                 0.0)
+    chair.up = up
+    return chair
+
+
 def _check(vertices, faces, part_labels):
     if vertices.ndim != 2 or vertices.shape[1] != 3:
         raise ValueError(f'vertices must be (V, 3), got {vertices.shape}')

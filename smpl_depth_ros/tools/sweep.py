@@ -34,7 +34,8 @@ def sweep_frames(body, sampler, sensor, lo, hi, n, seed, strength=1.0):
     from dataclasses import replace
 
     from smpl_depth_ros.synth import dataset
-    p = dataset.SynthParams(sensor=sensor, strength=strength)
+    p = dataset.SynthParams(sensor=sensor, strength=strength,
+                            chairs=sampler.mode == 'seated')
     p = replace(p, depth_range=(lo, hi))
     for i in range(n):
         rng = np.random.default_rng([seed, i])

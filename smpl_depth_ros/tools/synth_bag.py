@@ -69,8 +69,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help='noise strength of --sensor (1 = nominal)')
     ap.add_argument('--poses', default='templates', choices=MODES,
                     help="'templates': the activity templates; 'broad': postures beyond "
-                         "them and uniform draws within the joint limits; 'mocap': real "
-                         'motion capture retargeted to anny (synth.poses)')
+                         "them and uniform draws within the joint limits; 'seated': on a "
+                         "chair (rendered under them); 'mocap': real motion capture "
+                         'retargeted to anny (synth.poses)')
     ap.add_argument('--depth-range', type=float, nargs=2, default=None, metavar=('MIN', 'MAX'),
                     help='root depth range in metres (default 1 5)')
     ap.add_argument('--width', type=int, default=None, help='resample the camera preset')
@@ -136,7 +137,8 @@ def main(argv=None) -> int:
         camera = sensor.camera
     else:
         camera = get_camera(args.camera, args.width, args.height)
-    params = dataset.SynthParams(sensor=sensor, strength=args.strength)
+    params = dataset.SynthParams(sensor=sensor, strength=args.strength,
+                                 chairs=args.poses == 'seated')
     if args.depth_range is not None:
         params = dataclasses.replace(params, depth_range=tuple(args.depth_range))
     sampler = PoseSampler(body, head_turn_deg=args.head_turn, mode=args.poses)
