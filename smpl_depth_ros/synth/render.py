@@ -8,9 +8,10 @@ works in float32 and only picks the triangle). Barycentrics of the hit come from
 `trimesh.triangles.points_to_barycentric`. Depth is the optical-frame z of the hit, not
 the ray length.
 
-Background geometry (floor, walls, boxes; `Background`, `sample_background`) is
-concatenated after the body triangles and cast in the same pass, so the body occludes
-it and vice versa; background pixels get label 0 and vertex id -1.
+Background geometry (floor, walls, boxes; `Background`, `sample_background`; a chair
+under a seated person, `chair_under`) is concatenated after the body triangles and cast
+in the same pass, so the body occludes it and vice versa; background pixels get label 0
+and vertex id -1.
 """
 from __future__ import annotations
 
@@ -263,9 +264,9 @@ def chair_under(vertices: np.ndarray, part_labels: np.ndarray, up: np.ndarray,
 
     The seat's top touches the lowest point of the torso and thighs, from just behind
     the buttocks to under the thighs (0.38-0.48 m deep, ending 0.12 m behind the knees'
-    front, 0.42-0.52 m wide), on four legs
-    down to the body's lowest point (the floor under its feet); a backrest behind the
-    back (0.3-0.6 m high) two times in three. The chair faces the way the thighs point.
+    front, 0.42-0.52 m wide), on four legs down to the body's lowest point (the floor
+    under its feet); a backrest behind the back (0.3-0.6 m high) two times in three.
+    The chair faces the way the thighs point.
 
     Args:
         vertices: (V, 3) posed body, optical frame, metres.
