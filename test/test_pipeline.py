@@ -383,15 +383,15 @@ def test_flip_tta_falls_back_on_the_plain_pass_when_its_fit_is_rejected(rec, mon
     assert err['tta'] < 0.06 and abs(err['tta'] - err['plain']) < 0.01, err
 
 
-def test_a_person_sized_box_is_not_a_further_person(rec, monkeypatch):
+def test_a_person_sized_box_is_not_a_further_person(rec):
     """`synth_bag --seed 5 --sequence`'s first frames (one person, a box beside them) with
     `max_persons` 3: only the person is reported, with one ID, and the box, once found to
-    be no person, is skipped while it stays put. A network that labels the box as body
-    parts (the broad one, given as weights_path; the shipped Kinect network no longer
-    does here) fits it a body: a new person needs a body score of MIN_COLD_SCORE, and a
-    further one a fit the sensor does not see through (MAX_SEE_THROUGH). Without both
-    tests and that memory the box comes back."""
-    import smpl_depth_ros.pipeline as pipeline_module
+    be no person, is skipped while it stays put; also with the broad network (given as
+    weights_path), which labels the box as body parts more readily: a new person needs a
+    body score of MIN_COLD_SCORE, and a further one a fit the sensor does not see through
+    (MAX_SEE_THROUGH). (Without both tests and that memory the box came back with the
+    Kinect network before its chair fine-tune; with the present networks on these frames
+    only in some runs, so that control is not asserted.)"""
     from smpl_depth_ros.net.infer import broad_weights
 
     def run(crops_seen=None, weights=''):
@@ -424,11 +424,6 @@ def test_a_person_sized_box_is_not_a_further_person(rec, monkeypatch):
     assert crops_seen[0] > 1 and crops_seen[-1] == 1, crops_seen
     frames = run(weights=broad_weights('anny'))
     assert all(len(f) == 1 and f[0][0] == 1 and f[0][1] < 0.1 for f in frames), frames
-    monkeypatch.setattr(pipeline_module, 'MIN_COLD_SCORE', 0.0)
-    monkeypatch.setattr(pipeline_module, 'MAX_SEE_THROUGH', 1.0)
-    monkeypatch.setattr(pipeline_module, 'NOT_PERSON_FRAMES', -1)  # nothing remembered
-    frames = run(weights=broad_weights('anny'))
-    assert any(len(f) > 1 and min(e for _, e in f[1:]) > 1.0 for f in frames), frames
 
 
 def test_a_frame_whose_fits_are_all_rejected_says_so(rec):
