@@ -29,6 +29,7 @@ try:  # Embree through embreex, the backend of trimesh.ray.ray_pyembree
 except ImportError:  # pragma: no cover
     _embree = None
 
+from smpl_depth_ros.body.parts import PART_NAMES
 from smpl_depth_ros.synth.camera import Camera
 
 # Background face kinds (Background.kinds).
@@ -254,7 +255,10 @@ def sample_background(rng: np.random.Generator, camera: Camera, person_root: np.
     return scene
 
 
-SEAT_PARTS = (2, 9, 10)  # torso and upper legs (body.parts): what rests on a seat
+_TORSO = PART_NAMES.index('torso')
+_THIGHS = (PART_NAMES.index('upper_leg_l'), PART_NAMES.index('upper_leg_r'))
+_SHINS = (PART_NAMES.index('lower_leg_l'), PART_NAMES.index('lower_leg_r'))
+SEAT_PARTS = (_TORSO, *_THIGHS)  # torso and upper legs: what rests on a seat
 
 
 def chair_under(vertices: np.ndarray, part_labels: np.ndarray, up: np.ndarray,
@@ -278,12 +282,12 @@ def chair_under(vertices: np.ndarray, part_labels: np.ndarray, up: np.ndarray,
     up = np.asarray(up, np.float64) / np.linalg.norm(up)
     h = v @ up
     floor = float(h.min())
-    torso = v[part_labels == 2]
-    thighs = v[np.isin(part_labels, (9, 10))]
+    torso = v[part_labels == _TORSO]
+    thighs = v[np.isin(part_labels, _THIGHS)]
     if len(torso) == 0 or len(thighs) == 0:
         return None
     fwd = np.zeros(3)
-    for thigh, shin in ((9, 11), (10, 12)):  # each thigh's long axis, towards its knee
+    for thigh, shin in zip(_THIGHS, _SHINS):  # each thigh's long axis, towards its knee
         t, k = v[part_labels == thigh], v[part_labels == shin]
         if len(t) < 3 or len(k) == 0:
             return None
