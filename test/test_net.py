@@ -134,7 +134,7 @@ def test_weights_for_another_body_are_refused(body, tmp_path):
 def test_depth_jumps_are_edges_above_the_threshold_widened_by_the_noise():
     """A depth jump is an edge above 6 cm (at 2 m) plus 3 times the sensor's excess noise:
     with 1 cm of excess a 7.5 cm step is no edge and a 10 cm one is; with none, both are.
-    Rows and columns alike, at full and half resolution."""
+    Rows and columns alike, at full and half resolution, in both edge maps."""
     from smpl_depth_ros.net.preprocess import _depth_edges
 
     def excess(z):
@@ -145,13 +145,36 @@ def test_depth_jumps_are_edges_above_the_threshold_widened_by_the_noise():
                 d[:, 30:] += step  # a jump between columns 29 and 30
             else:
                 d[30:, :] += step  # (transposed: between rows 29 and 30)
-            for s in (1, 2):
-                plain, noisy = _depth_edges(d, s), _depth_edges(d, s, excess)
+            for s, side in ((1, 0), (1, 1), (2, 0), (2, 1)):  # side: far side, both
+                plain, noisy = _depth_edges(d, s)[side], _depth_edges(d, s, excess)[side]
                 for edges, expected in ((plain, True), (noisy, with_noise)):
                     e = edges if d.flags['C_CONTIGUOUS'] else edges.T
                     cols = np.flatnonzero(e.any(0))
                     assert (len(cols) > 0) == expected, (step, s, cols)
                     assert all(29 // s <= c <= 30 // s for c in cols), cols
+
+
+def test_a_depth_jump_cuts_on_its_far_side_and_a_thin_limb_stays_whole():
+    """A limb two (decimated) pixels wide at 4 m before a wall at 5 m, with an invalid
+    pixel on one side (a flying pixel dropped): the far-side map marks the wall's pixels,
+    not the limb's, so the limb keeps its width and is still cut apart from the wall; the
+    both-sides map marks the limb's border too. At full and half resolution."""
+    from scipy import ndimage
+
+    from smpl_depth_ros.net.preprocess import _depth_edges
+    for s in (1, 2):
+        d = np.full((40 * s, 60 * s), 5.0, np.float32)
+        d[:, 30 * s:32 * s] = 4.0  # the limb: decimated columns 30 and 31
+        d[:, 29 * s] = 0.0  # an invalid pixel column on its left
+        edges, jumps = _depth_edges(d, s)
+        assert not edges[:, 30:32].any()
+        assert edges[:, 32].all()  # the wall beside it
+        assert jumps[:, 30].all() and jumps[:, 32].all()
+        valid = d[::s, ::s] > 0
+        lab, _ = ndimage.label(valid & ~edges)
+        assert len(np.unique(lab[:, 30:32])) == 1 and lab[0, 30] > 0
+        assert not np.isin(lab[:, 33:], lab[0, 30]).any()
+        assert not np.isin(lab[:, :29], lab[0, 30]).any()
 
 
 def test_split_side_by_side():
@@ -350,19 +373,31 @@ def test_peel_finds_a_person_at_a_wall_beside_a_person_sized_box():
 
 def test_a_person_beside_a_wide_low_box_at_the_same_depth_is_a_candidate():
     """A box a hand's width beside a person, at the same depth and smaller in pixels, is
-    merged as a small piece; the whole is too wide for one person, so on the second look
-    the person's component alone is the candidate (the first pass drops it with the box)."""
+    merged as a small piece; the whole is too wide for one person, so the person's
+    component alone is the candidate: in the first pass already, as it holds more than
+    ALONE_SHARE of the group. With a box on either side (the person less than that
+    share), the first pass drops the person with the boxes, and only the second look
+    takes their component alone."""
+    from smpl_depth_ros.net.preprocess import ALONE_SHARE
     K = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]])
     z = 3.0
-    d = np.zeros((480, 640), np.float32)
     px = lambda m: int(round(m * 525.0 / z))  # noqa: E731 - metres at z to pixels
-    top, left = 100, 200
-    d[top:top + px(1.7), left:left + px(0.5)] = z  # the person: 0.5 m x 1.7 m
-    b0 = left + px(0.5) + px(0.08)
-    d[top + px(1.3):top + px(1.7), b0:b0 + px(1.2)] = z + 0.05  # the box: 1.2 m x 0.4 m
-    assert find_persons(d, K, 0.5, 6.0, min_pixels=300, max_persons=3) == []
-    (c,) = find_persons(d, K, 0.5, 6.0, min_pixels=300, max_persons=3, peel=True)
-    assert c.mask[top + 10, left + 10] and not c.mask[top + px(1.5), b0 + px(0.6)]
+    top, left = 100, 300
+    for boxes in (1, 2):
+        d = np.zeros((480, 640), np.float32)
+        d[top:top + px(1.7), left:left + px(0.5)] = z  # the person: 0.5 m x 1.7 m
+        b0 = left + px(0.5) + px(0.08)
+        d[top + px(1.3):top + px(1.7), b0:b0 + px(1.2)] = z + 0.05  # a box: 1.2 m x 0.4 m
+        if boxes == 2:  # ... and one as big on the left
+            d[top + px(1.3):top + px(1.7), left - px(1.28):left - px(0.08)] = z + 0.05
+        person = 1.7 * 0.5 / (1.7 * 0.5 + boxes * 1.2 * 0.4)
+        assert (person > ALONE_SHARE) == (boxes == 1)
+        first = find_persons(d, K, 0.5, 6.0, min_pixels=300, max_persons=3)
+        assert len(first) == (1 if boxes == 1 else 0)
+        (c,) = find_persons(d, K, 0.5, 6.0, min_pixels=300, max_persons=3, peel=True)
+        for crop in first + [c]:
+            assert crop.mask[top + 10, left + 10]
+            assert not crop.mask[top + px(1.5), b0 + px(0.6)]
 
 
 def test_a_strip_of_floor_is_floor_on_the_second_look_only():

@@ -9,10 +9,11 @@ pixel counts such as min_pixels scale by 1 / s^2); boxes and masks are full-imag
    near-horizontal planes (normal within ~40 deg of the image vertical) holding > 3 % of
    the valid points and spanning > 1 m in both in-plane directions (up to two, e.g. floor
    and a table top).
-3. Connected components of what remains, with edges cut at depth jumps > 6 cm between
-   neighbouring pixels; smaller components at a similar depth near a component's box are
-   merged into it (self-occlusion), and so is a component of similar size stacked above
-   or below it (an arm across the waist); a blob is a person candidate when it has enough
+3. Connected components of what remains, cut at depth jumps > 6 cm between neighbouring
+   pixels (on the jump's far side: a person keeps their border pixels); smaller
+   components at a similar depth near a component's box are merged into it
+   (self-occlusion), and so is a component of similar size stacked above or below it (an
+   arm across the waist); a blob is a person candidate when it has enough
    pixels and a plausible 3D size (0.4-2.6 m tall, < 1.6 m wide). When no blob is (or,
    with `peel`, when none of them proved to be a person), the planes of any orientation
    are peeled off the large ones and step 3 runs again (a person close to a wall).
@@ -45,6 +46,7 @@ DETECT_WIDTH = 320  # person detection runs on the image decimated to about this
 GROW_PX = 3         # a person mask reaches this many pixels past its blob ...
 GROW_DEPTH = 0.8    # ... at most this far from the person's median depth (metres)
 FLOOR_UP = 0.75     # a floor-like plane's normal: |its image-vertical component| above this
+ALONE_SHARE = 0.6  # a component this big a share of its merged group is also tried alone
 FLOOR_STRIP_M = (0.5, 1.8)  # second look: a floor-like plane this deep and wide (m) is floor
 
 
@@ -312,38 +314,52 @@ def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=2,
     return keep
 
 
-def _depth_edges(depth: np.ndarray, s: int, noise=None) -> np.ndarray:
-    """Edges at depth discontinuities on the image decimated by s: (ceil(H/s), ceil(W/s)).
+def _depth_edges(depth: np.ndarray, s: int, noise=None) -> tuple[np.ndarray, np.ndarray]:
+    """Edges at depth discontinuities on the image decimated by s: two (ceil(H/s),
+    ceil(W/s)) maps, (far side, both sides).
 
     A jump of more than 6 cm (scaled with depth: Kinect quantisation grows with z^2;
-    invalid pixels count as 0) between neighbouring full-image pixels marks the nearer
-    decimated pixel in its row or column (both when as near), so every jump on the way
-    between two decimated 4-neighbours cuts them apart. With s <= 2 this is the full-image
-    edge map (the pixels on both sides of a jump) sampled at the decimated pixels.
+    invalid pixels count as 0) between neighbouring full-image pixels, in a row or a
+    column, lies between two decimated pixels. The first map marks the farther of the
+    two (an invalid one counts as the farthest): every jump on the way between two
+    decimated 4-neighbours cuts them apart, and the nearer surface, a person in front of
+    the scene, keeps its border pixels. The second marks the decimated pixel nearer the
+    jump in the image, both when as near (with s <= 2, the pixels on both sides of every
+    jump): a blob's pixels off any jump, whose depths are the surface's own (no mixed or
+    flying pixels at the silhouette). Person finding cuts components with the first
+    (cut with the second, a limb two or three pixels wide, a person beyond 3.5 m at
+    320x288, lost every pixel and the body fell into pieces too small to be a
+    candidate) and measures a blob with the second (`_group_blob`).
     With an excess noise e(z) (`noise`: sensor_noise.NoiseModel.excess) the jump grows by
     3 e(z) (a noisier sensor's surfaces would otherwise fall apart into fragments).
     `depth`: metres, invalid pixels 0 (no NaN).
     """
-    def marks(lines):  # (n, L) full-image lines -> (n, ceil(L / s)) edges on them
+    def marks(lines):  # (n, L) full-image lines -> 2 x (n, ceil(L / s)) edges on them
         n, length = lines.shape
         m = -(-length // s)
-        jump = np.zeros((n, m * s), bool)  # [:, j]: between pixels j and j + 1
         step = np.abs(np.diff(lines, axis=1))
         thr = 0.06 * np.maximum(lines[:, 1:] / 3.0, 1.0) ** 2
-        big = step > thr
+        i, j = np.nonzero(step > thr)  # between pixels j and j + 1 of line i
         if noise is not None:
             # The noise only raises the threshold: it is needed where the jump passes
             # the noiseless one (a few per cent of the pixels), not everywhere.
-            i, j = np.nonzero(big)
             far = np.maximum(lines[i, j + 1], lines[i, j])
-            big[i, j] = step[i, j] > thr[i, j] + 3.0 * noise(far)
-        jump[:, :length - 1] = big
-        jump = jump.reshape(n, m, s)  # [:, c, i]: between pixels c * s + i and c * s + i + 1
-        edge = jump[:, :, :(s + 1) // 2].any(2)  # i <= (s - 1) / 2: nearer to pixel c
-        edge[:, 1:] |= jump[:, :-1, s // 2:].any(2)  # i >= (s - 1) / 2: nearer to c + 1
-        return edge
+            keep = step[i, j] > thr[i, j] + 3.0 * noise(far)
+            i, j = i[keep], j[keep]
+        c, r = np.divmod(j, s)  # between decimated pixels c and c + 1 (r full pixels on)
+        both = np.zeros((n, m + 1), bool)
+        both[i[r <= (s - 1) / 2], c[r <= (s - 1) / 2]] = True  # nearer to pixel c
+        both[i[r >= (s - 1) / 2], c[r >= (s - 1) / 2] + 1] = True  # nearer to c + 1
+        inside = c + 1 < m
+        i, c = i[inside], c[inside]
+        a, b = lines[i, c * s], lines[i, (c + 1) * s]
+        a, b = np.where(a > 0, a, np.inf), np.where(b > 0, b, np.inf)
+        far_side = np.zeros((n, m), bool)
+        far_side[i, np.where(a >= b, c, c + 1)] = True
+        return far_side, both[:, :m]
 
-    return marks(depth[::s]) | marks(depth[:, ::s].T).T
+    rows, cols = marks(depth[::s]), marks(depth[:, ::s].T)
+    return rows[0] | cols[0].T, rows[1] | cols[1].T
 
 
 def fill_small_holes(depth: np.ndarray, radius: int = 2) -> np.ndarray:
@@ -447,9 +463,11 @@ def _upper_is_nearer(a, b) -> bool:
     return upper[1] < lower[1]
 
 
-def _group_blob(group, lab, slices, d, n, grow, s, K):
+def _group_blob(group, lab, slices, d, n, grow, s, K, core=None):
     """The decimated blob of components `group`, when it has a person's 3D size
-    (0.4-2.6 m tall, < 1.6 m wide; from at most 2000 of its pixels).
+    (0.4-2.6 m tall, < 1.6 m wide; from at most 2000 of its pixels). `core`: the
+    decimated pixels off any depth jump (`_depth_edges`); the blob is the group's pixels
+    among them (all of them when none is).
 
     Returns None, or (blob over its box, rows, cols, depths of its pixels (decimated image),
     box r0, r1, c0, c1 with room for growing the mask)."""
@@ -461,6 +479,8 @@ def _group_blob(group, lab, slices, d, n, grow, s, K):
     in_group = np.zeros(n + 1, bool)
     in_group[group] = True
     blob = in_group[lab[r0:r1, c0:c1]]
+    if core is not None and (blob & core[r0:r1, c0:c1]).any():
+        blob &= core[r0:r1, c0:c1]
     rr, cc = np.nonzero(blob)
     zz = d[r0:r1, c0:c1][rr, cc]
     rr, cc = rr + r0, cc + c0
@@ -474,10 +494,11 @@ def _group_blob(group, lab, slices, d, n, grow, s, K):
 
 
 def _candidates(fg, depth, d, K, s, min_px, max_persons, depth_min, depth_max,
-                alone: bool = False):
+                alone: bool = False, core=None):
     """Person candidates among the connected components of `fg` (decimated image `d`).
     `alone`: a component whose merged group is too big for a person is a candidate by
-    itself when it is person-sized (the second look's rule).
+    itself when it is person-sized (the second look's rule; without it, only a component
+    holding ALONE_SHARE of its group's pixels).
 
     Returns ([(distance to the image centre, Crop)], component labels, labels of the
     largest components that were not person-sized (at least 4 x min_px)).
@@ -517,15 +538,18 @@ def _candidates(fg, depth, d, K, s, min_px, max_persons, depth_min, depth_max,
                    and _stacked(slices[k - 1], slices[j - 1])
                    and (g < 0.2 or (g < 0.5 and _upper_is_nearer(
                        (slices[k - 1], medians[k]), (slices[j - 1], medians[j]))))]
-        # With `alone`, last the component alone: a box or a piece of furniture beside
-        # a person at the same depth is merged as a small piece, and the whole is too
-        # wide for one. Only on the second look: in the first, it also takes parts of
-        # people as candidates before the whole (stereo frames of several people, whose
-        # invalid bands cut bodies into pieces, lost persons).
+        # Last, the component alone: a box or a piece of furniture beside a person at the
+        # same depth is merged as a small piece, and the whole is too wide for one. On
+        # the second look (`alone`) always; in the first only when the component is most
+        # of its group (ALONE_SHARE: a hand or a foot resting on a box), since there a
+        # smaller piece taken alone made a candidate of part of a person before the
+        # whole (stereo frames of several people, whose invalid bands cut bodies into
+        # pieces, lost persons).
         groups = [[k, *small, *stacked]] if stacked else []
-        groups += [[k, *small], [k]] if alone and len(small) else [[k, *small]]
+        alone_too = alone or sizes[k] >= ALONE_SHARE * (sizes[k] + sizes[small].sum())
+        groups += [[k, *small], [k]] if len(small) and alone_too else [[k, *small]]
         for group in groups:
-            fit = _group_blob(group, lab, slices, d, n, grow, s, K)
+            fit = _group_blob(group, lab, slices, d, n, grow, s, K, core)
             if fit is not None:
                 break
         if fit is None:
@@ -597,9 +621,9 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
                           noise=noise)
     fg = np.zeros_like(valid)
     fg[valid] = keep
-    edges = _depth_edges(depth, s, noise)
+    edges, jumps = _depth_edges(depth, s, noise)
     crops, lab, rejected = _candidates(fg & ~edges, depth, d, K, s, min_px, max_persons,
-                                       depth_min, depth_max, alone=peel)
+                                       depth_min, depth_max, alone=peel, core=~jumps)
     peeled = None  # decimated pixels of the planes peeled off (hidden from the network)
     if rejected and (peel or not crops):
         # A person within the depth-jump threshold of a wall (or on a floor the first
@@ -619,7 +643,7 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
             peeled = np.zeros_like(fg) if peeled is None else peeled
             peeled[rr[on_plane], cc[on_plane]] = True
         crops, _, _ = _candidates(fg & ~edges, depth, d, K, s, min_px, max_persons,
-                                  depth_min, depth_max, alone=peel)
+                                  depth_min, depth_max, alone=peel, core=~jumps)
     crops.sort(key=lambda t: t[0])
     crops = [c for _, c in crops]
     _mark_behind(crops)
