@@ -334,6 +334,28 @@ def test_stored_far_stereo_frame_is_reconstructed(monkeypatch):
     assert worse > 2 * err
 
 
+def test_the_see_through_test_stops_a_false_person_beside_a_far_stereo_person(monkeypatch):
+    """test/data/stereo_d435_far.npz with three persons wanted: beside the person, a body
+    is fitted to a piece of the scene 3 m away, and rejected because the sensor sees
+    through more than MAX_SEE_THROUGH of its visible side (0.34 of it); with that test
+    off, it is reported as a second person."""
+    from smpl_depth_ros import pipeline
+    from smpl_depth_ros.config import PipelineConfig
+    f = np.load('test/data/stereo_d435_far.npz')
+    depth, centre = f['depth_mm'] / 1000.0, f['vertices'].mean(0)
+    cfg = PipelineConfig(tracking=False, device='cpu', max_persons=3)
+    rec = pipeline.Reconstructor(cfg)
+
+    def offsets(r):  # each reconstructed body's centre from the true one's (m)
+        return sorted(float(np.linalg.norm(p.vertices.mean(0) - centre))
+                      for p in r.process(depth, f['K']).persons)
+    got = offsets(rec)
+    assert len(got) == 1 and got[0] < 0.1, got
+    monkeypatch.setattr(pipeline, 'MAX_SEE_THROUGH', 1.0)
+    got = offsets(pipeline.Reconstructor(cfg, body=rec.body))
+    assert len(got) == 2 and got[0] < 0.1 and got[1] > 1.0, got
+
+
 def test_a_pose_the_first_network_fails_on_is_reconstructed_by_the_second():
     """test/data/broad_pose_kinect_v1.npz: kneeling with the arms overhead, 4.1-5.0 m from
     a Kinect v1. Its frames go through the original network, whose fit no body explains;
