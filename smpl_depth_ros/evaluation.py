@@ -126,7 +126,9 @@ class TrackScore:
     found: matching it is neither a hit nor a false positive. Counts: hits, misses, false
     positives, ID switches (a true person matched to another ID than at its previous
     match); MOTA = 1 - (misses + false positives + switches) / persons to find; the PVE of
-    every hit.
+    every hit. `records`: one [frame, true id, pixels in view, 'hit' | 'miss' | 'optional',
+    predicted id or -1, PVE mm or None] per true person in view a frame, and one
+    [frame, -1, 0, 'false', predicted id, None] per false positive.
     """
 
     def __init__(self, min_visible: int, max_dist_m: float = 0.5):
@@ -135,6 +137,8 @@ class TrackScore:
         self.pve: list[float] = []
         self.last_id: dict[int, int] = {}
         self.ids_seen: set[int] = set()
+        self.records: list[list] = []
+        self._frame = 0
 
     def add(self, pred_ids, pred_pelvis, pred_vertices, gt_ids, gt_pelvis, gt_vertices,
             visible) -> None:
@@ -143,7 +147,7 @@ class TrackScore:
         self.must += int(must.sum())
         present = np.asarray(visible) > 0
         P, G = len(pred_ids), len(gt_ids)
-        matched_p, matched_g = set(), set()
+        matched_p, matched_g, pred_of, err = set(), set(), {}, {}
         if P and G:
             cost = np.linalg.norm(np.asarray(pred_pelvis)[:, None] -
                                   np.asarray(gt_pelvis)[None], axis=-1)
@@ -154,6 +158,7 @@ class TrackScore:
                     continue
                 matched_p.add(r)
                 matched_g.add(c)
+                pred_of[c] = r
                 if not must[c]:
                     continue
                 self.hits += 1
@@ -161,8 +166,21 @@ class TrackScore:
                 if g in self.last_id and self.last_id[g] != pid:
                     self.switches += 1
                 self.last_id[g] = pid
-                self.pve.append(pve(pred_vertices[r], gt_vertices[c]))
+                err[c] = pve(pred_vertices[r], gt_vertices[c])
+                self.pve.append(err[c])
         self.ids_seen.update(int(i) for i in pred_ids)
+        f = self._frame
+        for c in range(G):
+            if not present[c]:
+                continue
+            r = pred_of.get(c)
+            e = round(float(err[c]) * 1000, 2) if c in err else None
+            self.records.append([f, int(gt_ids[c]), int(visible[c]),
+                                 'optional' if not must[c] else 'hit' if r is not None
+                                 else 'miss', -1 if r is None else int(pred_ids[r]), e])
+        self.records.extend([f, -1, 0, 'false', int(pred_ids[r]), None]
+                            for r in range(P) if r not in matched_p)
+        self._frame += 1
         self.misses += int(sum(1 for c in range(G) if must[c] and c not in matched_g))
         self.false_pos += P - len(matched_p)
 

@@ -140,6 +140,12 @@ def test_track_score_counts_misses_false_positives_and_switches():
     s = sc.summary()                                           # 2 need not be found
     assert (s['hits'], s['misses'], s['false_positives'], s['id_switches']) == (3, 2, 1, 1)
     assert s['persons_to_find'] == 5 and abs(s['mota'] - (1 - 4 / 5)) < 1e-9
+    # Every person-frame's outcome: [frame, true id, pixels, outcome, predicted id, PVE].
+    assert sc.records == [[0, 1, 500, 'hit', 7, 0.0], [0, 2, 500, 'hit', 8, 0.0],
+                          [1, 1, 500, 'hit', 8, 0.0], [1, 2, 500, 'miss', -1, None],
+                          [2, 1, 500, 'miss', -1, None], [2, 2, 50, 'optional', -1, None],
+                          [2, -1, 0, 'false', 9, None]]
+    assert sum(r[3] == 'hit' for r in sc.records) == s['hits']
 
 
 def test_the_held_body_is_the_last_tracked_fit_while_recent():

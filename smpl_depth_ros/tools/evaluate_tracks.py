@@ -5,7 +5,9 @@
 Runs the pipeline over the bag as the node would (tracking on, `max_persons` = the
 bag's number of people unless `-p max_persons=` says otherwise) and scores it with
 `evaluation.TrackScore`: recall, precision, ID switches (per 100 person-frames found),
-MOTA, per-person PVE (mm, camera frame, no alignment), IDs used, and the frame rate.
+MOTA, per-person PVE (mm, camera frame, no alignment), IDs used, and the frame rate;
+with `--per-frame`, also every true person's outcome in every frame (`TrackScore.records`,
+the JSON's `records`: which person-frames a change gains or loses).
 A true person counts as one to find when at least `--min-visible` of its pixels are in
 view (default 1,500 at 640x480, scaled by the image area).
 """
@@ -29,6 +31,8 @@ def main(argv=None) -> int:
     ap.add_argument('--min-visible', type=int, default=None, metavar='PIXELS')
     ap.add_argument('-p', '--param', action='append', default=[], metavar='NAME=VALUE')
     ap.add_argument('--json', default=None, help='write the figures here')
+    ap.add_argument('--per-frame', action='store_true',
+                    help="also write each person-frame's outcome (JSON 'records')")
     args = ap.parse_args(argv)
 
     import torch
@@ -87,6 +91,8 @@ def main(argv=None) -> int:
                frame_ms_median=float(np.median(times) * 1e3) if times else float('nan'),
                frame_ms_p95=float(np.percentile(times, 95) * 1e3) if times else float('nan'),
                seconds=round(time.perf_counter() - t_all, 1))
+    if args.per_frame:
+        out['records'] = score.records
     write_json(out, args.json, 'evaluate_tracks ' + ' '.join(argv if argv is not None
                                                              else sys.argv[1:]))
     return 0
