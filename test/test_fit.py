@@ -502,18 +502,22 @@ def test_hidden_forearm_is_completed_not_left_straight(body):
 
 
 def test_shipped_pose_gaussian_is_the_committed_command_s_output(body, tmp_path):
-    """data/pose_prior_anny.npz is what `export_pose_prior` makes (deterministic), it is
-    the one the fitter loads, and it was learned from the broad poses, not only the
-    activity templates (deep knee bends are within its mean +- 2 sd)."""
+    """data/pose_prior_anny.npz is what `export_pose_prior` makes (deterministic up to
+    floating-point round-off, which differs between CPUs: 4e-8 at most was seen, where
+    another sampling seed moves them by 9e-3), it is the one the fitter
+    loads, and it was learned from the broad poses, not only the activity templates
+    (deep knee bends are within its mean +- 2 sd)."""
     from smpl_depth_ros.fit.pose_prior import PoseGaussian, shipped_path
     from smpl_depth_ros.tools import export_pose_prior
     out = tmp_path / 'p.npz'
     assert export_pose_prior.main(['--backend', 'anny', '--out', str(out)]) == 0
     with np.load(out) as a, np.load(shipped_path('anny')) as b:
-        for k in ('mean', 'cov', 'limits', 'joint_names'):
-            assert np.array_equal(a[k], b[k]), k
+        assert np.array_equal(a['joint_names'], b['joint_names'])
+        for k in ('mean', 'cov', 'limits'):
+            np.testing.assert_allclose(a[k], b[k], rtol=0, atol=1e-6, err_msg=k)
     g = PoseGaussian.for_body(body)
-    assert np.array_equal(g.mean, PoseGaussian.load(str(out), body).mean)
+    np.testing.assert_allclose(g.mean, PoseGaussian.load(str(out), body).mean, rtol=0,
+                               atol=1e-6)
     names = list(body.joint_names[1:])
     k = names.index('left_knee') * 3
     assert g.mean[k] + 2 * np.sqrt(g.cov[k, k]) > np.radians(120)
