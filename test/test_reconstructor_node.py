@@ -686,11 +686,13 @@ def test_runtime_parameter_validation(harness, core, scene):
         assert fitter.cfg.iterations == 8  # reached the solver too
     time.sleep(0.5)
     assert not tester.with_stamp('skeleton', stamp)
-    # Turning tracking off resets the tracker.
+    # Turning tracking off resets the tracker. The detector thread applies a change once
+    # both workers are idle: a frame it had already begun waiting for may still be
+    # reconstructed with the old settings, so the reset can follow that frame's output.
     resets = core.resets
     assert node.set_parameters([Parameter('tracking', value=False)])[0].successful
     send_until(tester, scene, 'mesh', 30.0)
-    assert core.resets > resets
+    assert wait_for(lambda: core.resets > resets, 10.0)
     assert core.config.tracking is False
 
 
