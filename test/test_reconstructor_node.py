@@ -525,7 +525,11 @@ def test_burst_against_slow_worker(harness, core, scene):
     service = max(core.durations[calls0:])  # one reconstruction, the delay included
     bound = 2 * service + 0.5
     assert lat.max() < bound, (lat, service)
-    assert lat[-1] < np.median(lat[:max(1, len(lat) // 3)]) + service, lat
+    # No growth over the burst: the last third's answers as quick as the first third's,
+    # within one reconstruction (the very last frame, sent after the detector had taken
+    # the one before it, may wait a whole reconstruction more: 2 x service).
+    third = max(1, len(lat) // 3)
+    assert np.median(lat[-third:]) < np.median(lat[:third]) + service, lat
     # Fewer outputs than inputs, the rest dropped and counted; every frame accounted for.
     assert len(lat) < i / 3
     with node._lock:
