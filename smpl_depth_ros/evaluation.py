@@ -147,7 +147,7 @@ class TrackScore:
         self.must += int(must.sum())
         present = np.asarray(visible) > 0
         P, G = len(pred_ids), len(gt_ids)
-        matched_p, matched_g, pred_of, err = set(), set(), {}, {}
+        matched_p, pred_of, err = set(), {}, {}  # pred_of: true person -> its match
         if P and G:
             cost = np.linalg.norm(np.asarray(pred_pelvis)[:, None] -
                                   np.asarray(gt_pelvis)[None], axis=-1)
@@ -157,7 +157,6 @@ class TrackScore:
                 if cost[r, c] > self.max_dist_m:
                     continue
                 matched_p.add(r)
-                matched_g.add(c)
                 pred_of[c] = r
                 if not must[c]:
                     continue
@@ -181,7 +180,7 @@ class TrackScore:
         self.records.extend([f, -1, 0, 'false', int(pred_ids[r]), None]
                             for r in range(P) if r not in matched_p)
         self._frame += 1
-        self.misses += int(sum(1 for c in range(G) if must[c] and c not in matched_g))
+        self.misses += int(sum(1 for c in range(G) if must[c] and c not in pred_of))
         self.false_pos += P - len(matched_p)
 
     def summary(self) -> dict:
