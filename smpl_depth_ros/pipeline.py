@@ -10,7 +10,7 @@ processing are two thin drivers of this class. `process` runs a frame's two stag
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -61,6 +61,9 @@ class Detection:
         crops: the person candidates (net.preprocess.Crop), most central first, then the
             nearest of the others (`Crop.nearest`).
         ms: time the detection took.
+        passes: id(crop) -> (crop, network input, labels, coords): the network passes
+            made ahead (`Reconstructor.look_ahead`); `reconstruct` makes the others.
+        ahead_ms: time those passes took.
     """
 
     depth: np.ndarray
@@ -71,6 +74,8 @@ class Detection:
     net: CorrespondenceNet
     crops: list
     ms: float
+    passes: dict = field(default_factory=dict)
+    ahead_ms: float = 0.0
 
 
 def resolve_device(name: str) -> torch.device:
@@ -199,6 +204,7 @@ class Reconstructor:
         self._frames = 0  # frames detected (`detect`) ...
         self._frame = 0  # ... and the number of the one being reconstructed ...
         self._frame_net: CorrespondenceNet | None = None  # ... and its network
+        self._ahead: dict = {}  # ... and its network passes made ahead (`look_ahead`)
         self._not_persons: list = []  # (blob mask, frame) found to be no person
 
     @property
@@ -324,6 +330,62 @@ class Reconstructor:
         return Detection(d, K, stamp_ns, self._frames, noise, self.net, crops,
                          (time.perf_counter() - t0) * 1e3)
 
+    def look_ahead(self, det: Detection) -> None:
+        """Between `detect` and `reconstruct`: the network passes `reconstruct` will most
+        likely make, made now (into `det.passes`), so that a live node can run them on its
+        detecting thread beside the reconstruction of the frame before. Only the time
+        changes: `reconstruct` uses a pass made here as one of its own (each is one
+        crop's, from the same network), and makes those missing.
+
+        Which candidates: while persons are tracked, as many as there are tracks with a
+        fit, those covering most of the tracks' last pixels first, not those seen
+        through a gap of a nearer one nor those found to be no person of late
+        (`_maybe_persons`; what the tracks and that memory say may be a frame old, which
+        only costs the odd pass made twice or in vain); else those `reconstruct` would
+        run first (all of them when there are more than max_persons to rank). Not with
+        flip_tta (its ranking uses the plain pass only).
+        """
+        cfg = self.config
+        if cfg.flip_tta or not det.crops:
+            return
+        t0 = time.perf_counter()
+        crops = det.crops
+        tracks = [tr for tr in list(self.tracker.tracks)
+                  if tr.fit is not None and tr.mask is not None
+                  and tr.mask.shape == det.depth.shape]
+        if cfg.tracking and tracks:
+            known = list(self._not_persons)
+            crops = [c for c in crops if not c.behind and c.mask is not None and not any(
+                m.shape == c.mask.shape and (m & c.mask).sum() >= NOT_PERSON_IOU *
+                (m | c.mask).sum() for m, _ in known)]
+            order = np.argsort([-max((c.mask & tr.mask).sum() for tr in tracks)
+                                for c in crops], kind='stable')
+            crops = [crops[i] for i in order[:min(len(tracks), cfg.max_persons)]]
+        else:
+            central = [c for c in crops if not c.nearest]
+            if len(central) <= cfg.max_persons:
+                crops = (central + [c for c in crops if c.nearest])[:cfg.max_persons]
+            else:
+                crops = central
+        for c, p in zip(crops, self._network(det.depth, crops, det.net)):
+            det.passes[id(c)] = (c,) + p
+        det.ahead_ms = (time.perf_counter() - t0) * 1e3
+
+    def _network(self, d, crops, net, passes: dict | None = None) -> list:
+        """The plain network passes of `crops` (one crop each: a pass is the same
+        made ahead or not), [(input, labels, coords)], taken from `passes`
+        (`Detection.passes`) where there."""
+        out = []
+        for c in crops:
+            hit = (passes or {}).get(id(c))
+            if hit is not None and hit[0] is c:
+                out.append(hit[1:])
+                continue
+            x = network_input(crop_depth(d, c), c.median_depth)
+            (lab,), (coords,) = net.predict(x[None], flip_tta=False)
+            out.append((x, lab, coords))
+        return out
+
     def reconstruct(self, det: Detection) -> FrameResult:
         """The second stage of `process`: the persons of a frame `detect`ed (see there).
 
@@ -334,15 +396,15 @@ class Reconstructor:
         t0 = time.perf_counter()
         d, K, stamp_ns, noise, crops = det.depth, det.K, det.stamp_ns, det.noise, det.crops
         excess = None if noise is None else noise.excess
-        self._frame, self._frame_net = det.index, det.net
+        self._frame, self._frame_net, self._ahead = det.index, det.net, det.passes
         t = self._clock(stamp_ns)
         self.tracker.expire(t)
         t1 = time.perf_counter()
         labels_full = np.zeros(d.shape, np.uint8)
         network_full = (np.zeros(d.shape, np.uint8) if cfg.segmentation == 'model'
                         else labels_full)
-        timings = dict(preprocess=det.ms + (t1 - t0) * 1e3, network=0.0, correspondence=0.0,
-                       fit=0.0, labels=0.0)
+        timings = dict(preprocess=det.ms + (t1 - t0) * 1e3, network=det.ahead_ms,
+                       correspondence=0.0, fit=0.0, labels=0.0)
         if not crops:
             self.tracker.forget_fits()
             raise InputError('no_person', f'no person found between {cfg.depth_min:.2f} and '
@@ -400,7 +462,7 @@ class Reconstructor:
                                      f'{limit:.1f})'))
             raise InputError('no_person', 'person candidates found, but the network '
                              'segmented no body in them')
-        timings['total'] = det.ms + (time.perf_counter() - t0) * 1e3
+        timings['total'] = det.ms + det.ahead_ms + (time.perf_counter() - t0) * 1e3
         return FrameResult(persons=persons, labels=labels_full, timings_ms=timings,
                            network_labels=network_full)
 
@@ -493,8 +555,13 @@ class Reconstructor:
                 tn = time.perf_counter()
                 n = 1 if cfg.tracking and self.tracker.tracks else cfg.max_persons - len(persons)
                 batch = crops[i:i + n]
-                xb = np.stack([network_input(crop_depth(d, c), c.median_depth) for c in batch])
-                lb, cb = net.predict(xb, flip_tta=cfg.flip_tta)
+                if cfg.flip_tta:
+                    xb = np.stack([network_input(crop_depth(d, c), c.median_depth)
+                                   for c in batch])
+                    lb, cb = net.predict(xb, flip_tta=True)
+                else:
+                    xb, lb, cb = zip(*self._network(
+                        d, batch, net, self._ahead if net is self._frame_net else None))
                 x.extend(xb)
                 lab.extend(lb)
                 coords.extend(cb)
@@ -685,13 +752,14 @@ class Reconstructor:
         if len(crops) <= self.config.max_persons:  # each will be tried: no ranking needed
             return crops + extra, [], [], [], {}
         tn = time.perf_counter()
-        x = np.stack([network_input(crop_depth(d, c), c.median_depth) for c in crops])
         tta = self.config.flip_tta
         if tta:  # keep the plain pass's probabilities for the mirrored one added later
+            x = np.stack([network_input(crop_depth(d, c), c.median_depth) for c in crops])
             probs, rc = net.raw(x)
             lab, coords = net.combine((probs, rc))
         else:
-            lab, coords = net.predict(x, flip_tta=False)
+            x, lab, coords = zip(*self._network(
+                d, crops, net, self._ahead if net is self._frame_net else None))
         timings['network'] += (time.perf_counter() - tn) * 1e3
         score = [-body_score(c, xi[1] > 0, li, d.shape) for c, xi, li in zip(crops, x, lab)]
         # A blob seen through a gap of a nearer candidate goes after every other one.

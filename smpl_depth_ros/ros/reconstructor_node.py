@@ -13,10 +13,12 @@ Threading: the subscription callbacks only convert the message and drop the fram
 one-slot mailbox (a newer frame overwrites a stale one, which is counted as dropped). Two
 worker threads run the core one frame apart: once the reconstructor has taken a frame, the
 detector takes the newest one, timed to be done when the reconstructor usually is, and
-runs `Reconstructor.detect` (checks, sensor noise, person candidates); the reconstructor
-runs `Reconstructor.reconstruct` (network, fit, labels, tracks) and publishes. Their
-results are those of `Reconstructor.process` frame by frame; on two cores one person's
-stream is answered about 30 % more often at the same latency. A changed configuration is
+runs `Reconstructor.detect` (checks, sensor noise, person candidates) and
+`Reconstructor.look_ahead` (the network passes of the candidates likely to be persons);
+the reconstructor runs `Reconstructor.reconstruct` (the network passes still missing, fit,
+labels, tracks) and publishes. Their results are those of `Reconstructor.process` frame by
+frame; on two cores one person's stream is answered about 30 % more often at the same
+latency. A changed configuration is
 applied by the detector while both are idle. ROS entities are created and destroyed on
 the main (executor) thread only.
 
@@ -500,6 +502,7 @@ class ReconstructorNode(Node):
             t0 = time.monotonic()
             try:
                 det = self._rec.detect(frame.depth, frame.K, stamp_ns=frame.stamp_ns)
+                self._rec.look_ahead(det)
             except InputError as e:
                 self._report(e, frame.header)
                 det = None
