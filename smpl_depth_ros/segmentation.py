@@ -131,9 +131,10 @@ def model_labels(region, fg, net, dw, K, u0, v0, vertices, surface: LabelSurface
         region = region.copy()
         region[rr[on], cc[on]] = False
     # One tree over the surface samples, and one per part as needed, shared by both
-    # passes.
+    # passes; built unbalanced (half the time to build, the same nearest samples: on 120
+    # persons of multi_s31 the labels were identical, 13.0 -> 11.6 ms a person).
     samples = surface.samples(vertices)
-    tree, part_trees = cKDTree(samples), {}
+    tree, part_trees = cKDTree(samples, balanced_tree=False, compact_nodes=False), {}
 
     def label(rr, cc):
         return label_pixels(rr, cc, dw, fg, net, K, u0, v0, surface, samples, tree,
@@ -185,7 +186,8 @@ def label_pixels(rr, cc, dw, fg, net, K, u0, v0, surface: LabelSurface, samples,
                 m = np.flatnonzero((nf == p) & (pf != nf))
                 if len(vi) and len(m):
                     if p not in part_trees:
-                        part_trees[p] = cKDTree(samples[vi])
+                        part_trees[p] = cKDTree(samples[vi], balanced_tree=False,
+                                                compact_nodes=False)
                     dp = part_trees[p].query(q[m])[0]
                     pf[m[dp <= dist[m] + keep_net]] = p
         part[isfg] = pf
