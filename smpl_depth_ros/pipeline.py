@@ -61,8 +61,9 @@ class Detection:
         crops: the person candidates (net.preprocess.Crop), most central first, then the
             nearest of the others (`Crop.nearest`).
         ms: time the detection took.
-        passes: id(crop) -> (crop, network input, labels, coords): the network passes
-            made ahead (`Reconstructor.look_ahead`); `reconstruct` makes the others.
+        passes: id(crop) -> (crop, network input, labels, coords, Eq. 2 vertex ids of its
+            body pixels): the network passes made ahead (`Reconstructor.look_ahead`);
+            `reconstruct` makes the others.
         ahead_ms: time those passes took.
     """
 
@@ -332,10 +333,11 @@ class Reconstructor:
 
     def look_ahead(self, det: Detection) -> None:
         """Between `detect` and `reconstruct`: the network passes `reconstruct` will most
-        likely make, made now (into `det.passes`), so that a live node can run them on its
-        detecting thread beside the reconstruction of the frame before. Only the time
-        changes: `reconstruct` uses a pass made here as one of its own (each is one
-        crop's, from the same network), and makes those missing.
+        likely make and their Eq. 2 lookups, made now (into `det.passes`), so that a live
+        node can run them on its detecting thread beside the reconstruction of the frame
+        before (both let go of the interpreter lock). Only the time changes:
+        `reconstruct` uses a pass made here as one of its own (each is one crop's, from
+        the same network), and makes those missing.
 
         Which candidates: while persons are tracked, as many as there are tracks with a
         fit, those covering most of the tracks' last pixels first, not those seen
@@ -367,8 +369,9 @@ class Reconstructor:
                 crops = (central + [c for c in crops if c.nearest])[:cfg.max_persons]
             else:
                 crops = central
-        for c, p in zip(crops, self._network(det.depth, crops, det.net)):
-            det.passes[id(c)] = (c,) + p
+        for c, (x, lab, coords) in zip(crops, self._network(det.depth, crops, det.net)):
+            det.passes[id(c)] = (c, x, lab, coords,
+                                 det.net.lookup(lab, coords, (lab > 0) & (x[1] > 0)))
         det.ahead_ms = (time.perf_counter() - t0) * 1e3
 
     def _network(self, d, crops, net, passes: dict | None = None) -> list:
@@ -379,7 +382,7 @@ class Reconstructor:
         for c in crops:
             hit = (passes or {}).get(id(c))
             if hit is not None and hit[0] is c:
-                out.append(hit[1:])
+                out.append(hit[1:4])
                 continue
             x = network_input(crop_depth(d, c), c.median_depth)
             (lab,), (coords,) = net.predict(x[None], flip_tta=False)
@@ -583,7 +586,9 @@ class Reconstructor:
             fitter = self.fitter.for_noise(excess)
             reject = scaled_reject_residual(cfg.reject_residual_m, excess)
             tc = time.perf_counter()
-            vids = net.lookup(lab[i], coords[i], fg)
+            hit = self._ahead.get(id(crop)) if net is self._frame_net else None
+            vids = (hit[4] if hit is not None and hit[0] is crop and hit[2] is lab[i]
+                    else net.lookup(lab[i], coords[i], fg))
             rr, cc, _ = crop.sample_indices(d.shape)
             r, c = rr[fg], cc[fg]
             if persons and np.mean(claimed[r, c]) > MAX_CLAIMED:
