@@ -64,7 +64,7 @@ class Detection:
         passes: id(crop) -> (crop, network input, labels, coords, Eq. 2 vertex ids of its
             body pixels): the network passes made ahead (`Reconstructor.look_ahead`);
             `reconstruct` makes the others.
-        ahead_ms: time those passes took.
+        ahead_ms: time those passes and lookups took (counted as the network's).
     """
 
     depth: np.ndarray
