@@ -146,6 +146,26 @@ def body_score(crop, valid: np.ndarray, labels: np.ndarray, image_shape) -> floa
     return n / max(int(blob.sum()), 1) * parts
 
 
+def known_blob(mask: np.ndarray, blobs) -> bool:
+    """Whether a candidate's `mask` is one of `blobs` ((mask, frame) pairs, the blobs
+    found to be no person): intersection over union >= NOT_PERSON_IOU."""
+    return any(m.shape == mask.shape and (m & mask).sum() >= NOT_PERSON_IOU *
+               (m | mask).sum() for m, _ in blobs)
+
+
+def by_overlap(crops, masks) -> list:
+    """`crops` ordered by the most pixels they share with any of `masks` (the tracks'
+    last pixels), most first; ties keep their order."""
+    order = np.argsort([-max((c.mask & m).sum() for m in masks) for c in crops],
+                       kind='stable')
+    return [crops[i] for i in order]
+
+
+def body_pixels(x: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """(S, S) bool: the crop pixels with depth (network input `x`) labelled body."""
+    return (labels > 0) & (x[1] > 0)
+
+
 def joint_adjacency(parents) -> np.ndarray:
     """(J, J) 0/1: the segments that observe each joint: its own and its parent's (the
     two bones meeting at it), the root's own and its children's."""
@@ -352,17 +372,14 @@ class Reconstructor:
             return
         t0 = time.perf_counter()
         crops = det.crops
-        tracks = [tr for tr in list(self.tracker.tracks)
-                  if tr.fit is not None and tr.mask is not None
-                  and tr.mask.shape == det.depth.shape]
-        if cfg.tracking and tracks:
+        prev = [tr.mask for tr in list(self.tracker.tracks)
+                if tr.fit is not None and tr.mask is not None
+                and tr.mask.shape == det.depth.shape]
+        if cfg.tracking and prev:
             known = list(self._not_persons)
-            crops = [c for c in crops if not c.behind and c.mask is not None and not any(
-                m.shape == c.mask.shape and (m & c.mask).sum() >= NOT_PERSON_IOU *
-                (m | c.mask).sum() for m, _ in known)]
-            order = np.argsort([-max((c.mask & tr.mask).sum() for tr in tracks)
-                                for c in crops], kind='stable')
-            crops = [crops[i] for i in order[:min(len(tracks), cfg.max_persons)]]
+            crops = by_overlap([c for c in crops if not c.behind and c.mask is not None
+                                and not known_blob(c.mask, known)], prev)
+            crops = crops[:min(len(prev), cfg.max_persons)]
         else:
             central = [c for c in crops if not c.nearest]
             if len(central) <= cfg.max_persons:
@@ -371,7 +388,7 @@ class Reconstructor:
                 crops = central
         for c, (x, lab, coords) in zip(crops, self._network(det.depth, crops, det.net)):
             det.passes[id(c)] = (c, x, lab, coords,
-                                 det.net.lookup(lab, coords, (lab > 0) & (x[1] > 0)))
+                                 det.net.lookup(lab, coords, body_pixels(x, lab)))
         det.ahead_ms = (time.perf_counter() - t0) * 1e3
 
     def _network(self, d, crops, net, passes: dict | None = None) -> list:
@@ -479,11 +496,7 @@ class Reconstructor:
                              if 0 <= self._frame - f <= NOT_PERSON_FRAMES]
         if not self.config.tracking or not self._not_persons:
             return list(crops)
-
-        def known(mask) -> bool:
-            return any(m.shape == mask.shape and (m & mask).sum() >= NOT_PERSON_IOU *
-                       (m | mask).sum() for m, _ in self._not_persons)
-        return [c for c in crops if c.mask is None or not known(c.mask)]
+        return [c for c in crops if c.mask is None or not known_blob(c.mask, self._not_persons)]
 
     def _not_a_person(self, crop, net, K, t: float) -> None:
         """Remember (`_maybe_persons`) a candidate matching no track in which the
@@ -575,7 +588,7 @@ class Reconstructor:
                     plain.pop(i), net.raw(x[i][None], mirrored=True))
                 lab[i], coords[i] = lb, cb
                 timings['network'] += (time.perf_counter() - tn) * 1e3
-            fg = (lab[i] > 0) & (x[i][1] > 0)
+            fg = body_pixels(x[i], lab[i])
             # A candidate is a person when the network sees a body in most of it.
             if fg.sum() < MIN_BODY_PIXELS or fg.sum() < MIN_BODY_SHARE \
                     * max(int(x[i][1].sum()), 1) * self._blob_fraction(crop, x[i][1]):
@@ -745,9 +758,7 @@ class Reconstructor:
                 if tr.fit is not None and tr.mask is not None]
         if self.config.tracking and prev:
             if all(m.shape == d.shape for m in prev):
-                order = np.argsort([-max((c.mask & m).sum() for m in prev) for c in crops],
-                                   kind='stable')
-                return [crops[i] for i in order], [], [], [], {}
+                return by_overlap(crops, prev), [], [], [], {}
             return crops, [], [], [], {}
         # The nearest candidates kept beyond the most central ones come after those,
         # unranked (a piece of a near person split off by a depth jump would otherwise

@@ -18,9 +18,8 @@ runs `Reconstructor.detect` (checks, sensor noise, person candidates) and
 the reconstructor runs `Reconstructor.reconstruct` (the network passes still missing, fit,
 labels, tracks) and publishes. Their results are those of `Reconstructor.process` frame by
 frame; on two cores one person's stream is answered about 30 % more often at the same
-latency. A changed configuration is
-applied by the detector while both are idle. ROS entities are created and destroyed on
-the main (executor) thread only.
+latency. A changed configuration is applied by the detector while both are idle. ROS
+entities are created and destroyed on the main (executor) thread only.
 
 Camera distortion: D is read but the depth image is used as is (no undistortion); a
 non-zero D is reported once in the log and in diagnostics.
