@@ -174,6 +174,12 @@ class PipelineConfig:
     reject_residual_m: float = param(0.09, 'person candidates whose fit leaves a larger '
                                      'median residual are not reported (m)',
                                      range=(0.0, 10.0), **_A)
+    undistort: str = param('auto', 'a depth image whose camera_info has a non-zero D: '
+                           "'auto' takes it as the lens's own image (resampled to pinhole "
+                           'with the distortion_model and D; outputs stay aligned with it) '
+                           "unless its topic's name says rect (image_rect, image_rect_raw: "
+                           "then it is used with P); 'always' / 'never' decide without the "
+                           'name', choices=('auto', 'always', 'never'))
     sensor: str = param('auto', "the depth sensor, whose noise the thresholds scale with: "
                         "'auto' (measured from the frames), a preset (e.g. 'realsense_d435', "
                         "'oak_d', 'azure_kinect_nfov', 'kinect_v1') or 'none' (fixed "

@@ -10,7 +10,7 @@ processing are two thin drivers of this class. `process` runs a frame's two stag
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -26,6 +26,7 @@ from smpl_depth_ros.fit.freespace import FreeSpace, see_through_share, supportin
 from smpl_depth_ros.net.infer import CorrespondenceNet, broad_weights
 from smpl_depth_ros.net.preprocess import (crop_depth, find_persons, network_input,
                                            pixel_points, split_side_by_side)
+from smpl_depth_ros.rectify import Lens, Rectifier
 from smpl_depth_ros.refine import (SurfaceParts, facing_camera, near_surface_pixels, rigid_icp,
                                    refine_correspondences)
 from smpl_depth_ros.segmentation import LabelSurface, paste_labels
@@ -65,6 +66,8 @@ class Detection:
             body pixels): the network passes made ahead (`Reconstructor.look_ahead`);
             `reconstruct` makes the others.
         ahead_ms: time those passes and lookups took (counted as the network's).
+        rectifier: the lens's maps when the frame was resampled from a lens's own image
+            (`undistort`; `depth` and `K` are then the pinhole image's), else None.
     """
 
     depth: np.ndarray
@@ -77,6 +80,7 @@ class Detection:
     ms: float
     passes: dict = field(default_factory=dict)
     ahead_ms: float = 0.0
+    rectifier: Rectifier | None = None
 
 
 def resolve_device(name: str) -> torch.device:
@@ -166,6 +170,22 @@ def body_pixels(x: np.ndarray, labels: np.ndarray) -> np.ndarray:
     return (labels > 0) & (x[1] > 0)
 
 
+def on_raw_pixels(result: FrameResult, rect: Rectifier) -> FrameResult:
+    """A result reconstructed on a lens-distorted frame's pinhole image (`undistort`)
+    with its labels, masks and pixels moved onto the raw image's pixels (the 3D outputs
+    are the same in both: the camera frame does not change)."""
+    persons = []
+    for p in result.persons:
+        pixels = p.pixels
+        if pixels is not None:
+            r, c = rect.raw_pixels(pixels[:, 0], pixels[:, 1])
+            pixels = np.stack([r, c], 1)
+        persons.append(replace(p, mask=rect.to_raw(p.mask), pixels=pixels))
+    net = result.network_labels
+    return replace(result, persons=persons, labels=rect.to_raw(result.labels),
+                   network_labels=None if net is None else rect.to_raw(net))
+
+
 def joint_adjacency(parents) -> np.ndarray:
     """(J, J) 0/1: the segments that observe each joint: its own and its parent's (the
     two bones meeting at it), the root's own and its children's."""
@@ -227,6 +247,7 @@ class Reconstructor:
         self._frame_net: CorrespondenceNet | None = None  # ... and its network
         self._ahead: dict = {}  # ... and its network passes made ahead (`look_ahead`)
         self._not_persons: list = []  # (blob mask, frame) found to be no person
+        self._lens: tuple | None = None  # (camera key, Rectifier) of the last lens undone
 
     @property
     def net(self) -> CorrespondenceNet:
@@ -311,25 +332,30 @@ class Reconstructor:
                                                      fit_cfg.__dataclass_fields__})
         self.fitter = Fitter(self.body, fit_cfg)
 
-    def process(self, depth: np.ndarray, K: np.ndarray, stamp_ns: int | None = None
-                ) -> FrameResult:
+    def process(self, depth: np.ndarray, K: np.ndarray, stamp_ns: int | None = None,
+                lens: Lens | None = None) -> FrameResult:
         """Reconstruct the persons in one depth frame: `reconstruct(detect(...))`.
 
         Args:
             depth: (H, W) metres (float; 0/NaN invalid).
             K: (3, 3) intrinsics of this image.
             stamp_ns: capture time, for tracking gaps (None: treat as consecutive).
+            lens: the camera's lens (`rectify.Lens`, from its camera_info), or None (a
+                pinhole camera). With a non-zero D the image is either the lens's own,
+                resampled to pinhole first (`rectify.Rectifier`), or a rectified one,
+                seen through the lens's P: `undistort` says which.
 
         Returns:
-            FrameResult (persons most central first; labels at input resolution).
+            FrameResult (persons most central first; labels, masks and pixels on the
+            input image's pixels).
 
         Raises:
             InputError for unusable frames, with reason 'no_person' when nobody is found.
         """
-        return self.reconstruct(self.detect(depth, K, stamp_ns))
+        return self.reconstruct(self.detect(depth, K, stamp_ns, lens))
 
-    def detect(self, depth: np.ndarray, K: np.ndarray, stamp_ns: int | None = None
-               ) -> Detection:
+    def detect(self, depth: np.ndarray, K: np.ndarray, stamp_ns: int | None = None,
+               lens: Lens | None = None) -> Detection:
         """The first stage of `process`: the frame checked, its sensor noise and its
         person candidates. It reads no track and no fit, so a live node may run it on the
         next frame while `reconstruct` runs on this one: as long as each stage takes the
@@ -343,13 +369,32 @@ class Reconstructor:
         t0 = time.perf_counter()
         d = validate_input(depth, K, cfg.max_image_pixels)
         K = np.asarray(K, np.float64)
+        rect = None
+        if lens is not None and lens.distorted:
+            if lens.undo(cfg.undistort):
+                rect = self._rectifier(K, lens, d.shape)
+                d, K = rect.rectify(d), rect.K
+            else:
+                K = np.asarray(lens.P, np.float64)
         noise = self._noise_for(d, K)
         crops = find_persons(d, K, cfg.depth_min, cfg.depth_max, cfg.min_person_pixels,
                              max_persons=max(cfg.max_persons, 1) + EXTRA_CANDIDATES,
                              nearest=NEAREST_CANDIDATES,
                              noise=None if noise is None else noise.excess)
         return Detection(d, K, stamp_ns, self._frames, noise, self.net, crops,
-                         (time.perf_counter() - t0) * 1e3)
+                         (time.perf_counter() - t0) * 1e3, rectifier=rect)
+
+    def _rectifier(self, K: np.ndarray, lens: Lens, shape) -> Rectifier:
+        """The lens maps of a camera (made once per camera: the last one is kept)."""
+        model, D = str(lens.model), np.asarray(lens.D, np.float64).reshape(-1)
+        key = (K.tobytes(), model, D.tobytes(), tuple(shape))
+        if self._lens is None or self._lens[0] != key:
+            try:
+                rect = Rectifier.for_camera(K, model, D, (shape[1], shape[0]))
+            except ValueError as e:
+                raise InputError('distortion', f'undistort: {e}') from None
+            self._lens = (key, rect)
+        return self._lens[1]
 
     def look_ahead(self, det: Detection) -> None:
         """Between `detect` and `reconstruct`: the network passes `reconstruct` will most
@@ -482,9 +527,12 @@ class Reconstructor:
                                      f'{limit:.1f})'))
             raise InputError('no_person', 'person candidates found, but the network '
                              'segmented no body in them')
+        result = FrameResult(persons=persons, labels=labels_full, timings_ms=timings,
+                             network_labels=network_full)
+        if det.rectifier is not None:
+            result = on_raw_pixels(result, det.rectifier)
         timings['total'] = det.ms + det.ahead_ms + (time.perf_counter() - t0) * 1e3
-        return FrameResult(persons=persons, labels=labels_full, timings_ms=timings,
-                           network_labels=network_full)
+        return result
 
     def _maybe_persons(self, crops) -> list:
         """The candidates of this frame to look at: with tracking, those that are not a

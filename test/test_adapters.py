@@ -181,6 +181,26 @@ def test_camera_info(msgs):
     assert A.camera_info_to_K(m)[1].size == 0
 
 
+def test_camera_info_lens(msgs):
+    """The lens of a camera_info (model, D, P) and what its depth topic's name says:
+    none for a camera without distortion, P for the rectified image (K when P is unset)."""
+    K = np.array([[504.0, 0, 320.0], [0, 504.0, 288.0], [0, 0, 1]])
+    D = [4.7, 3.2, 0.0, 0.0001, 0.17, 5.1, 4.8, 0.89]
+    m = wire(A.camera_info_msg(K, (640, 576), None, msgs, D=D, model='rational_polynomial'),
+             msgs)
+    m.p = np.array([[500.0, 0, 321, 0], [0, 500.0, 290, 0], [0, 0, 1, 0]]).reshape(-1)
+    cam = A.camera_info_intrinsics(m)
+    np.testing.assert_array_equal(cam.K, K)
+    assert cam.P[0, 0] == 500.0 and cam.P[1, 2] == 290.0 and cam.size == (640, 576)
+    raw, rect = cam.lens('/k4a/depth/image_raw'), cam.lens('/k4a/depth/image_rect')
+    assert raw.model == 'rational_polynomial' and list(raw.D) == D
+    assert raw.undo('auto') and not rect.undo('auto') and rect.undo('always')
+    m.p = np.zeros(12)
+    np.testing.assert_array_equal(A.camera_info_intrinsics(m).P, K)
+    plain = wire(A.camera_info_msg(K, (640, 576), None, msgs, D=np.zeros(5)), msgs)
+    assert A.camera_info_intrinsics(plain).lens('/depth/image_raw') is None
+
+
 def test_camera_info_bad_K(msgs):
     m = A.camera_info_msg(np.zeros((3, 3)), (640, 480), None, msgs)
     with pytest.raises(InputError, match='all zeros') as e:

@@ -121,8 +121,8 @@ class Core:
     def __getattr__(self, name):  # set_config and anything else the node may use
         return getattr(self._rec, name)
 
-    def detect(self, depth, K, stamp_ns=None):
-        return self._rec.detect(depth, K, stamp_ns=stamp_ns)
+    def detect(self, depth, K, stamp_ns=None, lens=None):
+        return self._rec.detect(depth, K, stamp_ns=stamp_ns, lens=lens)
 
     def reconstruct(self, det):
         self.busy = True
@@ -136,8 +136,8 @@ class Core:
             self.durations.append(time.monotonic() - t0)
             self.busy = False
 
-    def process(self, depth, K, stamp_ns=None):
-        return self.reconstruct(self.detect(depth, K, stamp_ns))
+    def process(self, depth, K, stamp_ns=None, lens=None):
+        return self.reconstruct(self.detect(depth, K, stamp_ns, lens))
 
     def reset(self):
         self.resets += 1
@@ -622,27 +622,45 @@ def test_bad_inputs_then_good_frame(harness, core, scene):
     assert int(summary['frames_no_camera_info']) >= 1
 
 
-def test_distortion_is_reported_not_undone(harness, core, scene):
-    """camera_info with non-zero D: the frames are still processed (as documented, the
-    depth is used without undistortion) and /diagnostics names the frame."""
+def test_a_lens_distorted_camera_is_undistorted(harness, core, scene):
+    """An Azure Kinect's own depth image (rational_polynomial camera_info, as its driver
+    publishes depth/image_raw) on a topic not named rect: made pinhole before use
+    (`undistort` 'auto'), the mesh lands on the true body and the published labels on the
+    raw image's body pixels; /diagnostics says what was done with the lens."""
+    from smpl_depth_ros.synth.poses import PoseSampler
+    from smpl_depth_ros.synth.sensors import LENSES, SENSORS
+    from smpl_depth_ros.tools.sweep import sweep_frames
+    body = core.body
+    fr = list(sweep_frames(body, PoseSampler(body), SENSORS['azure_kinect_nfov'], 2.0, 3.0,
+                           2, 202, lens='azure_kinect'))[1]
+    model, D = LENSES['azure_kinect']
     node, tester = harness()
-    info = scene.info_msg('distorted')
-    info.distortion_model = 'plumb_bob'
-    info.d = [0.1, -0.05, 0.001, 0.0, 0.0]
-    tester.infos.append(info)
-    assert wait_for(lambda: 'distorted' in node._camera_infos, 10.0)
+    h, w = fr['depth'].shape
+    tester.infos.append(A.camera_info_msg(fr['K'], (w, h), A.make_header(frame_id='azure'),
+                                          D=D, model=model))
+    assert wait_for(lambda: 'azure' in node._camera_infos, 10.0)
     stamps = []
 
     def meshed():
-        return any(tester.with_stamp('mesh', s) for s in stamps)
+        return [s for s in stamps if tester.with_stamp('mesh', s)]
     end = time.monotonic() + 30.0
     while not meshed() and time.monotonic() < end:
         stamps.append(tester.now_ns())
-        tester.pub_depth.publish(scene.depth_msg(0, stamps[-1], frame_id='distorted'))
+        tester.pub_depth.publish(A.depth_to_image_msg(
+            fr['depth'], A.make_header(stamp_ns=stamps[-1], frame_id='azure'), '16UC1'))
         wait_for(meshed, 0.5)
     assert meshed(), 'no mesh for the distorted camera'
-    assert wait_for(lambda: (tester.summary() or {}).get('distortion_ignored_for')
-                    == 'distorted', 10.0), tester.summary()
+    stamp = meshed()[0]
+    faces = body.faces_numpy()
+    v = mesh_vertices(tester.with_stamp('mesh', stamp)[0], faces, body.num_vertices)
+    assert np.nanmean(np.linalg.norm(v - fr['vertices'], axis=1)) < 0.03
+    assert wait_for(lambda: tester.with_stamp('segmentation/labels', stamp), 5.0)
+    labels = A.image_to_array(tester.with_stamp('segmentation/labels', stamp)[0])
+    assert labels.shape == (h, w)
+    ours, truth = labels > 0, fr['labels'] > 0
+    assert (ours & truth).sum() / (ours | truth).sum() > 0.7
+    assert wait_for(lambda: (tester.summary() or {}).get('lens_distortion')
+                    == 'azure: undistorted', 10.0), tester.summary()
 
 
 def test_runtime_parameter_validation(harness, core, scene):

@@ -301,7 +301,8 @@ class _BagRun:
         except BaseException:
             self.writer.close()
             raise
-        self.cams: dict[str, Any] = {}           # frame_id -> (K, (w, h)) | InputError
+        self.cams: dict[str, Any] = {}           # frame_id -> (CameraIntrinsics, Lens) | InputError
+        self.told_lens: set[str] = set()         # frame_ids whose lens was said to be kept
         self.waiting: deque = deque()            # depth frames waiting for a camera_info
         self.seen: dict[int, int] = {}           # header stamp -> times seen
         self.last_stamp: int | None = None
@@ -415,8 +416,16 @@ class _BagRun:
             return
         fid = str(msg.header.frame_id)
         try:
-            K, _D, size = self.A.camera_info_to_K(msg)
-            self.cams[fid] = (K, size)
+            cam = self.A.camera_info_intrinsics(msg)
+            lens = cam.lens(self.depth_topic)
+            self.cams[fid] = (cam, lens)
+            if lens is not None and fid not in self.told_lens:
+                self.told_lens.add(fid)
+                self.log(f"camera_info for '{fid}' has lens distortion ({cam.model}): depth "
+                         'images ' + ('are made pinhole before use'
+                                      if lens.undo(self.config.undistort) else
+                                      "are taken as rectified, seen through P (-p "
+                                      "undistort=always if they are the lens's own)"))
         except InputError as e:
             self.cams[fid] = e
         # Frames that came before their camera_info go now, in order.
@@ -466,7 +475,8 @@ class _BagRun:
             cam = self.cams[frame_id]
             if isinstance(cam, InputError):
                 raise cam
-            K, (cw, ch) = cam
+            cam, lens = cam
+            K, (cw, ch) = cam.K, cam.size
             w, h = int(msg.width), int(msg.height)
             if h * w > max_pixels:
                 raise InputError('too_large', f'depth image {w}x{h} has {w * h} pixels, more '
@@ -481,7 +491,8 @@ class _BagRun:
         reset = self.last_stamp is not None and stamp < self.last_stamp
         self.resets[index] = reset
         self.last_stamp = stamp
-        self.runner.submit(Job(index, stamp, frame_id, depth, K, reset, name), self.ready)
+        self.runner.submit(Job(index, stamp, frame_id, depth, K, reset, name, lens),
+                           self.ready)
 
     # -- outputs -------------------------------------------------------------------------
     def _diag(self, t_bag: int, stamp_ns: int, frame_id: str, statuses):

@@ -45,6 +45,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from smpl_depth_ros.config import PipelineConfig
+from smpl_depth_ros.rectify import Lens
 from smpl_depth_ros.ros.outputs import TOPICS, FrameOutputs
 from smpl_depth_ros.config import OutputOptions as MessageOptions
 from smpl_depth_ros.types import InputError
@@ -65,6 +66,7 @@ class Job:
     K: np.ndarray
     reset: bool = False        # reset tracking first (time went backwards)
     mesh_name: str = ''        # file stem for --export-meshes
+    lens: Lens | None = None    # the camera's lens, when it distorts (rectify)
 
 
 @dataclass
@@ -135,7 +137,7 @@ class FrameProcessor:
             self.outputs.forget()
         out = Outcome(job.index, 'ok', stamp_ns=job.stamp_ns, frame_id=job.frame_id)
         try:
-            res = self.rec.process(job.depth, job.K, stamp_ns=job.stamp_ns)
+            res = self.rec.process(job.depth, job.K, stamp_ns=job.stamp_ns, lens=job.lens)
         except InputError as e:
             out.status, out.message = e.reason, str(e)
             return out

@@ -20,6 +20,7 @@ import array
 import collections
 import importlib
 import itertools
+from dataclasses import dataclass
 from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
@@ -310,16 +311,55 @@ def camera_info_to_K(msg) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
     return K, D, (int(msg.width), int(msg.height))
 
 
+@dataclass(frozen=True)
+class CameraIntrinsics:
+    """A camera_info as the pipeline takes it (`camera_info_intrinsics`).
+
+    Attributes:
+        K: (3, 3) the raw image's intrinsics; P: (3, 3) the rectified image's (P's left
+        block; K when P is unset); model, D: the lens (distortion_model, D);
+        size: (width, height), (0, 0) when unset.
+    """
+
+    K: np.ndarray
+    P: np.ndarray
+    model: str
+    D: np.ndarray
+    size: tuple[int, int]
+
+    def lens(self, depth_topic: str):
+        """The `rectify.Lens` to give the pipeline with the images of `depth_topic` (its
+        name may say rectified), None for a camera without distortion."""
+        from smpl_depth_ros.rectify import Lens, named_rectified
+        lens = Lens(self.model, self.D, self.P, named_rectified(depth_topic))
+        return lens if lens.distorted else None
+
+
+def camera_info_intrinsics(msg) -> CameraIntrinsics:
+    """sensor_msgs/CameraInfo -> CameraIntrinsics (K checked as `camera_info_to_K`)."""
+    K, D, size = camera_info_to_K(msg)
+    p = getattr(msg, 'p', None)
+    if p is None:
+        p = getattr(msg, 'P', ())
+    P = np.asarray(p, np.float64).reshape(-1)
+    P = P.reshape(3, 4)[:, :3] if P.size == 12 else np.zeros((3, 3))
+    if not (np.all(np.isfinite(P)) and P[0, 0] > 0 and P[1, 1] > 0
+            and np.allclose(P[2], (0.0, 0.0, 1.0), atol=1e-6)):
+        P = K
+    model = str(getattr(msg, 'distortion_model', '') or '')
+    return CameraIntrinsics(K, P, model, D, size)
+
+
 def camera_info_msg(K: np.ndarray, size: tuple[int, int], header=None, msgs=None,
-                    D: Sequence[float] = ()):
-    """sensor_msgs/CameraInfo for a pinhole camera (plumb_bob, R = I, P = [K | 0])."""
+                    D: Sequence[float] = (), model: str = 'plumb_bob'):
+    """sensor_msgs/CameraInfo (R = I, P = [K | 0]; the lens `model` and `D`)."""
     f = as_factory(msgs)
     K = np.asarray(K, np.float64).reshape(3, 3)
     P = np.zeros((3, 4))
     P[:, :3] = K
     w, h = size
     return f.new('sensor_msgs/msg/CameraInfo', header=make_header(header, f), height=int(h),
-                 width=int(w), distortion_model='plumb_bob',
+                 width=int(w), distortion_model=str(model),
                  d=f.seq(np.asarray(D, np.float64), np.float64),
                  k=np.asarray(K.reshape(-1), np.float64), r=np.eye(3).reshape(-1),
                  p=P.reshape(-1))

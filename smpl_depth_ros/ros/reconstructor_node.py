@@ -21,8 +21,11 @@ frame; on two cores one person's stream is answered about 30 % more often at the
 latency. A changed configuration is applied by the detector while both are idle. ROS
 entities are created and destroyed on the main (executor) thread only.
 
-Camera distortion: D is read but the depth image is used as is (no undistortion); a
-non-zero D is reported once in the log and in diagnostics.
+Camera distortion: with a non-zero D the depth image is taken as a rectified one, seen
+through camera_info's P (the ROS convention; reported once in the log and in diagnostics),
+unless `undistort` says it is the raw image of a lens-distorted camera: then the pipeline
+resamples it to pinhole (`smpl_depth_ros.rectify`) and the published images stay aligned
+with it.
 """
 from __future__ import annotations
 
@@ -46,6 +49,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from smpl_depth_ros import params as P
 from smpl_depth_ros.config import PipelineConfig
+from smpl_depth_ros.rectify import Lens
 from smpl_depth_ros.stamps import stamp_to_ns
 from smpl_depth_ros.ros import adapters as A
 from smpl_depth_ros.ros.outputs import TOPICS, FrameOutputs
@@ -73,6 +77,7 @@ class Frame:
     K: np.ndarray
     stamp_ns: int
     received: float  # time.monotonic() when the callback got it
+    lens: Lens | None = None  # the camera's lens, when it distorts (rectify)
 
 
 class Mailbox:
@@ -233,12 +238,13 @@ class ReconstructorNode(Node):
         self._stage_s = [0.0, 0.0]                # usual detection, reconstruction (s)
         self._stage_times = (deque(maxlen=STAGE_FRAMES), deque(maxlen=STAGE_FRAMES))
         self._stop = threading.Event()
-        self._camera_infos: dict[str, Any] = {}   # frame_id -> (K, D, size) | InputError
+        self._camera_infos: dict[str, Any] = {}   # frame_id -> (camera, lens) | InputError
         self._info_time: dict[str, float] = {}    # frame_id -> last camera_info (monotonic)
         self._last_stamp_ns: int | None = None    # worker: the previous frame's stamp
         self._depth_time = 0.0                    # last depth message (monotonic)
         self._notices = Counter()                 # events that skip no frame (time jumps)
         self._distortion_warned: set[str] = set()
+        self._lens_log: dict[str, str] = {}       # frame_id -> what is done with its lens
         self._throttle: dict[str, float] = {}
         self._stats = Counter()
         self._errors = Counter()
@@ -432,16 +438,21 @@ class ReconstructorNode(Node):
         fid = msg.header.frame_id
         self._info_time[fid] = time.monotonic()
         try:
-            K, D, size = A.camera_info_to_K(msg)
+            cam = A.camera_info_intrinsics(msg)
         except InputError as e:
             self._camera_infos[fid] = e
             return
-        if D.size and np.any(D != 0) and fid not in self._distortion_warned:
+        lens = cam.lens(self._sub_depth.topic_name)
+        if lens is not None and fid not in self._distortion_warned:
             self._distortion_warned.add(fid)
-            self.get_logger().warning(
-                f"camera_info for '{fid}' has non-zero distortion ({msg.distortion_model}); "
-                'the depth image is used without undistortion')
-        self._camera_infos[fid] = (K, D, size)
+            undo = lens.undo(self._config.undistort)
+            self._lens_log[fid] = 'undistorted' if undo else 'taken as rectified'
+            (self.get_logger().info if undo else self.get_logger().warning)(
+                f"camera_info for '{fid}' has lens distortion ({cam.model}): depth images "
+                + (f"are made pinhole before use (undistort '{self._config.undistort}')"
+                   if undo else 'are taken as rectified, seen through P (undistort '
+                   f"'{self._config.undistort}'; 'always' if they are the lens's own)"))
+        self._camera_infos[fid] = (cam, lens)
 
     def _on_depth(self, msg: Image):
         received = self._depth_time = time.monotonic()
@@ -458,7 +469,8 @@ class ReconstructorNode(Node):
                     'depth is not processed until a matching camera_info arrives'))
             if isinstance(cam, InputError):
                 raise cam
-            K, _, (cw, ch) = cam
+            cam, lens = cam
+            K, (cw, ch) = cam.K, cam.size
             w, h = int(msg.width), int(msg.height)
             if h * w > self._values['max_image_pixels']:
                 raise InputError('too_large', f'depth image {w}x{h} has {w * h} pixels, more '
@@ -470,7 +482,7 @@ class ReconstructorNode(Node):
         except InputError as e:
             self._report(e, msg.header)
             return
-        frame = Frame(msg.header, depth, K, stamp_to_ns(msg.header.stamp), received)
+        frame = Frame(msg.header, depth, K, stamp_to_ns(msg.header.stamp), received, lens)
         self._mailbox.put(frame)
 
     # -- worker threads ------------------------------------------------------------------
@@ -500,7 +512,8 @@ class ReconstructorNode(Node):
             self._check_stamp(frame)
             t0 = time.monotonic()
             try:
-                det = self._rec.detect(frame.depth, frame.K, stamp_ns=frame.stamp_ns)
+                det = self._rec.detect(frame.depth, frame.K, stamp_ns=frame.stamp_ns,
+                                       lens=frame.lens)
                 self._rec.look_ahead(det)
             except InputError as e:
                 self._report(e, frame.header)
@@ -630,7 +643,8 @@ class ReconstructorNode(Node):
             'tracking': self._config.tracking,
             'time_to_first_result_s': self._first_result_s if self._first_result_s
             is not None else 'none yet',
-            'distortion_ignored_for': ', '.join(sorted(self._distortion_warned)) or 'none',
+            'lens_distortion': ', '.join(f'{k}: {v}' for k, v in sorted(self._lens_log.items()))
+            or 'none',
         })
         if rec == 0:
             return A.STALE, 'no depth received', values

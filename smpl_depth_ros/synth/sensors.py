@@ -420,6 +420,18 @@ SENSORS: dict[str, Sensor] = {
 }
 
 
+# Lenses of cameras whose drivers publish the lens's own depth image: name ->
+# (camera_info distortion_model, D in its order), on normalised coordinates (any mode's K).
+LENSES: dict[str, tuple[str, tuple[float, ...]]] = {
+    # An Azure Kinect depth camera's factory calibration (Brown-Conrady with six radial
+    # terms, i.e. OpenCV's rational polynomial; k1 k2 p1 p2 k3 k4 k5 k6) as one device
+    # reports it (Azure-Kinect-Sensor-SDK issue 1617 on GitHub): its image side
+    # (x = 0.63) lies 11 % nearer the centre than a pinhole camera would put it.
+    'azure_kinect': ('rational_polynomial', (4.7247, 3.2092, 5.88e-6, 1.238e-4, 0.1706,
+                                             5.0559, 4.7758, 0.8865)),
+}
+
+
 def get_sensor(name: str, width: int | None = None, height: int | None = None) -> Sensor:
     """A sensor preset by name, its camera optionally resampled (`camera.get_camera`)."""
     from smpl_depth_ros.synth.camera import get_camera

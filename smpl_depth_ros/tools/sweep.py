@@ -2,7 +2,7 @@
 
     sweep --json results/sweep_test.json --plot results/sweep_test.png \\
           [--sensors all] [--bins 1.0 5.0 0.5] [--frames 10] [--seed 101] \\
-          [--poses templates|broad|mocap] [-p NAME=VALUE ...]
+          [--poses templates|broad|mocap] [--lens azure_kinect] [-p NAME=VALUE ...]
 
 For every sensor preset (synth.sensors: its camera and noise model) and every depth bin,
 the same `--frames` subjects (shape, pose, yaw: frame i draws from the generator seeded
@@ -15,7 +15,8 @@ symmetric surface distance (`evaluation.surface_distance`: topology-free, both s
 sampled by area, median and mean), and the mIoU of the published segmentation; also the
 sensor's measured noise model. Bins beyond a sensor's range (kept 0.3 m inside it) are
 left out. JSON out, and a PNG with PVE and recall against distance, one line per sensor.
-Validation and test sweeps differ only by `--seed`.
+Validation and test sweeps differ only by `--seed`. `--lens` makes every frame the image
+of a lens-distorted camera, as its driver publishes it (`sweep_frames`).
 """
 from __future__ import annotations
 
@@ -28,22 +29,46 @@ import numpy as np
 from smpl_depth_ros import evaluation as ev
 
 
-def sweep_frames(body, sampler, sensor, lo, hi, n, seed, strength=1.0):
+def sweep_frames(body, sampler, sensor, lo, hi, n, seed, strength=1.0, lens=None):
     """The sweep's `n` frames of one sensor and depth bin [lo, hi] (frame i from the
-    generator seeded (seed, i)): synth.dataset.make_frame dicts."""
+    generator seeded (seed, i)): synth.dataset.make_frame dicts.
+
+    With `lens` (a synth.sensors.LENSES name) each frame is rendered on the pinhole image
+    the lens's `rectify.Rectifier` makes, with the sensor's noise, then made the lens's
+    own image (its depth and labels; K stays the sensor's), and carries the
+    `rectify.Lens` a driver's camera_info would give (key 'lens')."""
     from dataclasses import replace
 
     from smpl_depth_ros.synth import dataset
+    cam, rect, lens_of = sensor.camera, None, None
+    if lens:
+        from smpl_depth_ros.rectify import Lens, Rectifier
+        from smpl_depth_ros.synth.camera import Camera
+        from smpl_depth_ros.synth.sensors import LENSES
+        model, D = LENSES[lens]
+        K = np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1.0]])
+        rect = Rectifier.for_camera(K, model, D, (cam.width, cam.height))
+        lens_of = Lens(model, np.asarray(D), K)
+        cam = Camera(rect.shape[1], rect.shape[0], cam.fx, cam.fy, rect.K[0, 2],
+                     rect.K[1, 2], name=f'{cam.name}_pinhole', min_range=cam.min_range,
+                     max_range=cam.max_range, depth_unit=cam.depth_unit)
+        sensor = sensor.with_camera(cam)
     p = dataset.SynthParams(sensor=sensor, strength=strength,
                             chairs=sampler.mode == 'seated')
     p = replace(p, depth_range=(lo, hi))
     for i in range(n):
         rng = np.random.default_rng([seed, i])
-        yield dataset.make_frame(body, sampler, rng, sensor.camera, params=p)
+        fr = dataset.make_frame(body, sampler, rng, cam, params=p)
+        if rect is not None:
+            fr.update(depth=rect.to_raw(fr['depth']), labels=rect.to_raw(fr['labels']),
+                      K=lens_of.P, lens=lens_of)
+        yield fr
 
 
-def run_sweep(sensors, bins, frames, seed, poses, overrides, strength=1.0, progress=None):
-    """The sweep's rows: one dict per (sensor, bin) with its metrics (see module doc)."""
+def run_sweep(sensors, bins, frames, seed, poses, overrides, strength=1.0, progress=None,
+              lens=None):
+    """The sweep's rows: one dict per (sensor, bin) with its metrics (see module doc);
+    `lens`: see `sweep_frames`."""
     from smpl_depth_ros.body import load_body_model
     from smpl_depth_ros.config import PipelineConfig
     from smpl_depth_ros.params import from_params
@@ -70,9 +95,9 @@ def run_sweep(sensors, bins, frames, seed, poses, overrides, strength=1.0, progr
             conf = np.zeros((15, 15), np.int64)
             t0 = time.perf_counter()
             for k, fr in enumerate(sweep_frames(body, sampler, sensor, a, b, frames, seed,
-                                           strength)):
+                                           strength, lens)):
                 try:
-                    res = rec.process(fr['depth'], fr['K'])
+                    res = rec.process(fr['depth'], fr['K'], lens=fr.get('lens'))
                 except InputError as e:
                     fails.append(e.reason)
                     conf += ev.confusion(np.zeros_like(fr['labels']), fr['labels'])
@@ -87,7 +112,8 @@ def run_sweep(sensors, bins, frames, seed, poses, overrides, strength=1.0, progr
                 conf += ev.confusion(np.where(valid, res.labels, 0),
                                      np.where(valid, fr['labels'], 0))
             mm = lambda v, f: round(float(f(v)) * 1e3, 1) if v else None  # noqa: E731
-            row = dict(sensor=name, kind=sensor.kind, bin=[lo, hi], depth=[round(a, 2),
+            row = dict(sensor=name + (f'+{lens}' if lens else ''), kind=sensor.kind,
+                       bin=[lo, hi], depth=[round(a, 2),
                                                                         round(b, 2)],
                        frames=frames, reconstructed=round(len(pve) / frames, 3),
                        pve_mm=mm(pve, np.mean), pve_mm_median=mm(pve, np.median),
@@ -198,6 +224,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument('--seed', type=int, default=101)
     ap.add_argument('--poses', default='templates', choices=MODES)
     ap.add_argument('--strength', type=float, default=1.0, help='noise strength')
+    ap.add_argument('--lens', default=None, help="a synth.sensors.LENSES name: the frames "
+                    "are that lens's own (distorted) images, with its camera_info lens")
     ap.add_argument('--json', default=None)
     ap.add_argument('--plot', default=None, help='PNG of PVE and recall against distance')
     ap.add_argument('-p', '--param', action='append', default=[], metavar='NAME=VALUE',
@@ -208,12 +236,16 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     from smpl_depth_ros.params import ParamError, parse_overrides
-    from smpl_depth_ros.synth.sensors import SENSORS
+    from smpl_depth_ros.synth.sensors import LENSES, SENSORS
     names = list(SENSORS) if args.sensors == 'all' else [
         n for n in args.sensors.split(',') if n]
     bad = [n for n in names if n not in SENSORS]
     if bad or not names:
         print(f'sweep: unknown sensors {bad}; presets: {sorted(SENSORS)}', file=sys.stderr)
+        return 2
+    if args.lens and args.lens not in LENSES:
+        print(f'sweep: unknown lens {args.lens!r}; presets: {sorted(LENSES)}',
+              file=sys.stderr)
         return 2
     f, t, s = args.bins
     if not (0 < f < t and s > 0) or args.frames < 1:
@@ -226,7 +258,7 @@ def main(argv=None) -> int:
         overrides = parse_overrides(args.param)
         t0 = time.perf_counter()
         rows = run_sweep(names, bins, args.frames, args.seed, args.poses, overrides,
-                         args.strength,
+                         args.strength, lens=args.lens,
                          progress=lambda r: print(
                              f"{r['sensor']:26s} {r['depth'][0]:.1f}-{r['depth'][1]:.1f} m "
                              f"rec {r['reconstructed']:.2f} pve {r['pve_mm']} surf "
@@ -236,7 +268,7 @@ def main(argv=None) -> int:
         print(f'sweep: {e}', file=sys.stderr)
         return 2
     out = dict(summary=summarise(rows), rows=rows, seed=args.seed, poses=args.poses,
-               frames=args.frames, strength=args.strength, params=overrides,
+               frames=args.frames, strength=args.strength, lens=args.lens, params=overrides,
                seconds=round(time.perf_counter() - t0, 1),
                date=time.strftime('%Y-%m-%d'))
     if args.plot:
