@@ -680,7 +680,7 @@ class Reconstructor:
                        crop.v0 + 1.25 * side)
                 zmed = float(np.median(d[r, c].astype(np.float64)))
                 free = FreeSpace(d, K, zmed, fitter.cfg.free_space_margin, box=box,
-                                 planes=supporting_planes(crop.planes, pts))
+                                 planes=supporting_planes(crop.planes, pts), own=crop.mask)
             fit, vids, tracked = self._fit(pts, vids, stamp_ns, track, free, fitter,
                                            give_up_m=GIVE_UP * reject
                                            if track is None and persons else None)

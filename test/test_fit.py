@@ -553,3 +553,37 @@ def test_rigid_icp_lays_a_body_on_half_of_it_seen_elsewhere(body):
     R2, t2, ids = rigid_icp(pts, V, front)
     assert np.abs((V @ R2.T + t2) - (V @ R.T + t)).max() < 0.02
     assert np.mean(ids == seen) > 0.5 and set(ids) <= set(np.flatnonzero(front))
+
+
+def test_the_rim_of_a_hand_held_out_is_not_free_space(body):
+    """Exact depth (a renderer's, no sensor eroding the silhouettes): a body facing the
+    camera with both arms held forward, the hands well before the body's median depth.
+    The vertices on the hands' rim project a pixel outside their silhouette, onto the wall
+    behind: counted as seen through, the true mesh would be pulled towards the torso.
+    The person's own pixels (`own`, the blob) are never free space."""
+    from scipy import ndimage
+
+    from smpl_depth_ros.synth.camera import CAMERAS
+    from smpl_depth_ros.synth.render import render_body
+    names = list(body.joint_names[1:])
+    parts = body.part_labels.numpy()
+    pose = np.zeros((len(names), 3), np.float32)
+    C = body.canonical_rotation.numpy().astype(np.float64)
+    for side in ('left_shoulder', 'right_shoulder'):
+        pose[names.index(side)] = C.T @ np.radians([-80.0, 0.0, 0.0])
+    shape = body.shape_mean.numpy().astype(np.float32)
+    go, tr = placement(body, shape, 0.0, 0.0, 0.0, np.array([0.0, 0.1, 2.5]))
+    with torch.no_grad():
+        V = body(torch.tensor(pose)[None], torch.tensor(shape)[None], torch.tensor(go)[None],
+                 torch.tensor(tr)[None]).vertices[0].numpy().astype(np.float64)
+    hands = np.isin(parts, (7, 8))
+    ref = float(np.median(V[:, 2]))
+    assert abs(V[hands, 2].mean() - ref) > 0.2  # the hands are held well out
+    cam = CAMERAS['kinect_v1']
+    r = render_body(V, body.faces_numpy(), parts, cam)
+    depth = np.where(r.depth > 0, r.depth, 4.5).astype(np.float32)  # a wall behind
+    blob = ndimage.binary_dilation(r.depth > 0, iterations=3)
+    without = FreeSpace(depth, cam.K, ref_depth=ref).targets(V)[0]
+    own = FreeSpace(depth, cam.K, ref_depth=ref, own=blob).targets(V)[0]
+    assert len(without) >= 5 and hands[without].mean() > 0.5, (len(without), hands[without])
+    assert len(own) == 0, own
