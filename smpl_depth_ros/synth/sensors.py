@@ -425,7 +425,7 @@ SENSORS: dict[str, Sensor] = {
 LENSES: dict[str, tuple[str, tuple[float, ...]]] = {
     # An Azure Kinect depth camera's factory calibration (Brown-Conrady with six radial
     # terms, i.e. OpenCV's rational polynomial; k1 k2 p1 p2 k3 k4 k5 k6) as one device
-    # reports it (Azure-Kinect-Sensor-SDK issue 1617 on GitHub): its image side
+    # reports it (github.com/microsoft/Azure-Kinect-Sensor-SDK, #1617): its image side
     # (x = 0.63) lies 11 % nearer the centre than a pinhole camera would put it.
     'azure_kinect': ('rational_polynomial', (4.7247, 3.2092, 5.88e-6, 1.238e-4, 0.1706,
                                              5.0559, 4.7758, 0.8865)),
