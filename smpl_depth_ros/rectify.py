@@ -110,6 +110,14 @@ class Lens:
             return False
         return mode == 'always' or not self.rectified
 
+    def notice(self, frame_id: str, mode: str) -> str:
+        """What is done with this lens's images under `mode`, for the log."""
+        return (f"camera_info for '{frame_id}' has lens distortion ({self.model}): depth "
+                'images ' + (f"are made pinhole before use (undistort '{mode}')"
+                             if self.undo(mode) else
+                             f"are taken as rectified, seen through P (undistort '{mode}'; "
+                             "'always' if they are the lens's own)"))
+
 
 @dataclass(frozen=True)
 class Rectifier:

@@ -302,7 +302,7 @@ class _BagRun:
             self.writer.close()
             raise
         self.cams: dict[str, Any] = {}           # frame_id -> (CameraIntrinsics, Lens) | InputError
-        self.told_lens: set[str] = set()         # frame_ids whose lens was said to be kept
+        self.told_lens: set[str] = set()         # frame_ids whose lens notice was logged
         self.waiting: deque = deque()            # depth frames waiting for a camera_info
         self.seen: dict[int, int] = {}           # header stamp -> times seen
         self.last_stamp: int | None = None
@@ -421,11 +421,7 @@ class _BagRun:
             self.cams[fid] = (cam, lens)
             if lens is not None and fid not in self.told_lens:
                 self.told_lens.add(fid)
-                self.log(f"camera_info for '{fid}' has lens distortion ({cam.model}): depth "
-                         'images ' + ('are made pinhole before use'
-                                      if lens.undo(self.config.undistort) else
-                                      "are taken as rectified, seen through P (-p "
-                                      "undistort=always if they are the lens's own)"))
+                self.log(lens.notice(fid, self.config.undistort))
         except InputError as e:
             self.cams[fid] = e
         # Frames that came before their camera_info go now, in order.

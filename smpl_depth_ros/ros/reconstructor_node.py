@@ -243,7 +243,6 @@ class ReconstructorNode(Node):
         self._last_stamp_ns: int | None = None    # worker: the previous frame's stamp
         self._depth_time = 0.0                    # last depth message (monotonic)
         self._notices = Counter()                 # events that skip no frame (time jumps)
-        self._distortion_warned: set[str] = set()
         self._lens_log: dict[str, str] = {}       # frame_id -> what is done with its lens
         self._throttle: dict[str, float] = {}
         self._stats = Counter()
@@ -443,15 +442,11 @@ class ReconstructorNode(Node):
             self._camera_infos[fid] = e
             return
         lens = cam.lens(self._sub_depth.topic_name)
-        if lens is not None and fid not in self._distortion_warned:
-            self._distortion_warned.add(fid)
+        if lens is not None and fid not in self._lens_log:
             undo = lens.undo(self._config.undistort)
             self._lens_log[fid] = 'undistorted' if undo else 'taken as rectified'
-            (self.get_logger().info if undo else self.get_logger().warning)(
-                f"camera_info for '{fid}' has lens distortion ({cam.model}): depth images "
-                + (f"are made pinhole before use (undistort '{self._config.undistort}')"
-                   if undo else 'are taken as rectified, seen through P (undistort '
-                   f"'{self._config.undistort}'; 'always' if they are the lens's own)"))
+            log = self.get_logger()
+            (log.info if undo else log.warning)(lens.notice(fid, self._config.undistort))
         self._camera_infos[fid] = (cam, lens)
 
     def _on_depth(self, msg: Image):

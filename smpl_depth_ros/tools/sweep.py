@@ -43,15 +43,12 @@ def sweep_frames(body, sampler, sensor, lo, hi, n, seed, strength=1.0, lens=None
     cam, rect, lens_of = sensor.camera, None, None
     if lens:
         from smpl_depth_ros.rectify import Lens, Rectifier
-        from smpl_depth_ros.synth.camera import Camera
         from smpl_depth_ros.synth.sensors import LENSES
         model, D = LENSES[lens]
-        K = np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1.0]])
-        rect = Rectifier.for_camera(K, model, D, (cam.width, cam.height))
-        lens_of = Lens(model, np.asarray(D), K)
-        cam = Camera(rect.shape[1], rect.shape[0], cam.fx, cam.fy, rect.K[0, 2],
-                     rect.K[1, 2], name=f'{cam.name}_pinhole', min_range=cam.min_range,
-                     max_range=cam.max_range, depth_unit=cam.depth_unit)
+        rect = Rectifier.for_camera(cam.K, model, D, (cam.width, cam.height))
+        lens_of = Lens(model, np.asarray(D), cam.K)
+        cam = replace(cam, width=rect.shape[1], height=rect.shape[0], cx=rect.K[0, 2],
+                      cy=rect.K[1, 2], name=f'{cam.name}_pinhole')
         sensor = sensor.with_camera(cam)
     p = dataset.SynthParams(sensor=sensor, strength=strength,
                             chairs=sampler.mode == 'seated')
