@@ -230,9 +230,11 @@ class Reconstructor:
         self.device = resolve_device(config.device)
         self.body = body if body is not None else load_body_model(
             config.backend, config.model_path or None, device=self.device)
-        self._net = CorrespondenceNet(self.body, config.weights_path, device=self.device)
+        self._net = CorrespondenceNet(self.body, config.weights_path, device=self.device,
+                                      precision=config.net_precision)
         broad = None if config.weights_path else broad_weights(self.body.name)
-        self._broad_net = (CorrespondenceNet(self.body, broad, device=self.device)
+        self._broad_net = (CorrespondenceNet(self.body, broad, device=self.device,
+                                             precision=config.net_precision)
                            if broad else None)
         self.fitter = Fitter(self.body, config.fit)
         self.faces = self.body.faces_numpy()
@@ -259,6 +261,11 @@ class Reconstructor:
         if self._broad_net is not None and self.noise.kind in BROAD_NETWORK_FOR:
             return self._broad_net
         return self._net
+
+    @property
+    def net_precision(self) -> str:
+        """The networks' arithmetic in use: 'float32' or 'bfloat16' (`net_precision`)."""
+        return str(self._net.dtype).removeprefix('torch.')
 
     @property
     def other_net(self) -> CorrespondenceNet | None:
@@ -323,6 +330,10 @@ class Reconstructor:
         self.tracker.gate_m = config.track_gate_m
         if config.fit != old.fit:
             self.fitter = Fitter(self.body, config.fit)
+        if config.net_precision != old.net_precision:
+            for net in (self._net, self._broad_net):
+                if net is not None:
+                    net.set_precision(config.net_precision)
         if config.sensor != old.sensor:
             self._auto = AutoNoise() if config.sensor == 'auto' else None
             self._preset = None

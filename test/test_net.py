@@ -108,6 +108,36 @@ def test_flip_tta_is_mirror_consistent_and_no_worse(body):
     assert tta > plain - 0.01, (plain, tta)
 
 
+def test_bfloat16_network_gives_the_float32_labels(body):
+    """In bfloat16 (`net_precision`, the default on a CPU with bfloat16 units) both
+    shipped networks give float32's labels on held-out crops but for a few border pixels
+    and coordinates within a small part of the network's own error (~0.07); 'auto' picks
+    it only where the CPU has the units, never on CUDA; a switch back is float32 again."""
+    from smpl_depth_ros.net.infer import bfloat16_units, broad_weights, resolve_precision
+    x, _, _, _ = make_fixed_set(body, 12, seed=4646)
+    x = x.numpy()
+    for path in (default_weights('anny'), broad_weights('anny')):
+        net = CorrespondenceNet(body, path)
+        l32, c32 = net.predict(x)
+        net.set_precision('bfloat16')
+        assert net.dtype == torch.bfloat16
+        l16, c16 = net.predict(x)
+        assert c16.dtype == np.float32
+        body_px = (l32 > 0) | (l16 > 0)
+        assert (l16 == l32)[body_px].mean() > 0.99, (l16 == l32)[body_px].mean()
+        d = np.linalg.norm(c16 - c32, axis=1)[l32 > 0]
+        assert 0 < np.median(d) < 0.01, np.median(d)  # bfloat16 ran, and is close
+        net.set_precision('float32')
+        np.testing.assert_array_equal(net.predict(x)[1], c32)
+    cpu, cuda = torch.device('cpu'), torch.device('cuda')
+    assert resolve_precision('auto', cpu) == (torch.bfloat16 if bfloat16_units()
+                                              else torch.float32)
+    assert resolve_precision('auto', cuda) == torch.float32
+    assert resolve_precision('bfloat16', cuda) == torch.bfloat16
+    with pytest.raises(ValueError, match='net_precision'):
+        resolve_precision('half', cpu)
+
+
 def test_person_detection_on_real_kinect_frame():
     depth = np.asarray(Image.open(REAL)).astype(np.float32) / 1000.0
     crops = find_persons(depth, K_KINECT, 0.5, 10.0, min_pixels=400, max_persons=8)

@@ -15,6 +15,30 @@ def default_weights(backend: str, kind: str = 'double') -> str:
     return str(resources.files('smpl_depth_ros') / 'data' / f'corr_{backend}_{kind}.pt')
 
 
+PRECISIONS = ('auto', 'float32', 'bfloat16')
+
+
+def bfloat16_units() -> bool:
+    """Whether this CPU multiplies bfloat16 in hardware (AMX tiles: Intel Xeon of 2023
+    on), where the network runs about twice as fast in it; elsewhere bfloat16 is
+    emulated and slower than float32."""
+    probe = getattr(torch.cpu, '_is_amx_tile_supported', None)
+    try:
+        return bool(probe is not None and probe())
+    except Exception:  # noqa: BLE001 - an unknown CPU: float32
+        return False
+
+
+def resolve_precision(precision: str, device: torch.device) -> torch.dtype:
+    """The network's arithmetic: 'float32', 'bfloat16', or 'auto' (bfloat16 on a CPU with
+    `bfloat16_units`, float32 otherwise, CUDA included)."""
+    if precision not in PRECISIONS:
+        raise ValueError(f'net_precision must be one of {PRECISIONS}, not {precision!r}')
+    if precision == 'auto':
+        return torch.bfloat16 if device.type == 'cpu' and bfloat16_units() else torch.float32
+    return torch.bfloat16 if precision == 'bfloat16' else torch.float32
+
+
 def broad_weights(backend: str) -> str | None:
     """The second shipped double U-Net of a backend, trained on every sensor class
     (synth.sensors noise, any resolution) and the broad poses (docs/TRAINING.md); None
@@ -35,10 +59,14 @@ class CorrespondenceNet:
         flip_tta: also run every crop mirrored and average the two predictions (the
             mirrored one with left/right parts swapped and the canonical x mirrored back):
             twice the network time, better segmentation and correspondences.
+        precision: the network's arithmetic (`resolve_precision`): with bfloat16 the
+            convolutions run in it (autocast: softmax and the outputs stay float32); on 50
+            crops of three validation bags 99.8 % of the labels are those of float32 and
+            the coordinates move by 0.002 (median; the network's own error is ~0.07).
     """
 
     def __init__(self, body, weights: str = '', device='cpu', color_weight: float = 2.0,
-                 flip_tta: bool = False):
+                 flip_tta: bool = False, precision: str = 'float32'):
         self.flip_tta = flip_tta
         path = weights or default_weights(body.name)
         if not os.path.exists(path):
@@ -61,25 +89,43 @@ class CorrespondenceNet:
         self.net.load_state_dict({k: v.float() for k, v in ck['state_dict'].items()})
         self.net.eval().to(device)
         self.device = torch.device(device)
-        self._run = self._compile(self.net) if self.device.type == 'cpu' else self.net
+        self.set_precision(precision)
         parts = body.part_labels.cpu().numpy()
         self.embedding = template_embedding(body.canonical_vertices(), parts)
         self.index = EmbeddingIndex(self.embedding, body.valid_vertices.cpu().numpy(),
                                     color_weight=color_weight)
 
+    def set_precision(self, precision: str) -> None:
+        """Run in `precision` from now on (see the class); `dtype` says which."""
+        self.dtype = resolve_precision(precision, self.device)
+        if self.device.type == 'cpu':
+            self._run = self._compile(self.net, self.dtype)
+        else:
+            self._run = self.net
+
     @staticmethod
     @torch.inference_mode()
-    def _compile(net):
+    def _compile(net, dtype: torch.dtype = torch.float32):
         """CPU inference: channels-last layout and a frozen TorchScript trace (oneDNN
         convolution fusions), ~30 % faster than eager on this CPU; same outputs to 1e-5.
-        Falls back to the eager module if tracing fails."""
+        With bfloat16 traced under autocast (the casts are part of the trace). Falls back
+        to the eager module if tracing fails."""
         net = net.to(memory_format=torch.channels_last)
         x = torch.zeros(1, IN_CHANNELS, INPUT_SIZE, INPUT_SIZE).contiguous(
             memory_format=torch.channels_last)
         try:
-            return torch.jit.freeze(torch.jit.trace(net, x, check_trace=False))
+            with torch.autocast('cpu', dtype=torch.bfloat16,
+                                enabled=dtype == torch.bfloat16):
+                return torch.jit.freeze(torch.jit.trace(net, x, check_trace=False))
         except Exception:  # noqa: BLE001 - speed only
             return net
+
+    def _forward(self, t: torch.Tensor):
+        """The network's two outputs for the input batch `t`, in `dtype`'s arithmetic."""
+        if isinstance(self._run, torch.jit.ScriptModule) or self.dtype == torch.float32:
+            return self._run(t)
+        with torch.autocast(self.device.type, dtype=self.dtype):
+            return self._run(t)
 
     def _tensor(self, x: np.ndarray) -> torch.Tensor:
         t = torch.from_numpy(np.ascontiguousarray(x)).to(self.device)
@@ -100,7 +146,7 @@ class CorrespondenceNet:
         coords (B, 3, S, S), float32. With `mirrored` the crops are run mirrored and the
         outputs mapped back. `combine` averages passes."""
         t = self._tensor(x[..., ::-1] if mirrored else x)
-        logits, coords = self._run(t)
+        logits, coords = self._forward(t)
         probs, coords = logits.float().softmax(1), coords.float()
         if mirrored:
             probs, coords = self._unmirror(probs, coords)
@@ -122,7 +168,7 @@ class CorrespondenceNet:
         tta = self.flip_tta if flip_tta is None else flip_tta
         B = x.shape[0]
         t = self._tensor(np.concatenate([x, x[..., ::-1]]) if tta else x)
-        logits, coords = self._run(t)
+        logits, coords = self._forward(t)
         logits, coords = logits.float(), coords.float()
         if tta:
             pm, cm = self._unmirror(logits[B:].softmax(1), coords[B:])

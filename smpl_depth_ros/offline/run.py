@@ -250,7 +250,8 @@ def process_bag(bag: str | Path, out_dir: str | Path, *, config: PipelineConfig 
         'peak_rss_mb': peak_rss_mb(),
         'peak_rss_workers_mb': (max(peaks, default=None) if ray is not None else
                                 peak_rss_mb(resource.RUSAGE_CHILDREN) if workers > 1 else None),
-        'workers': workers, 'device': runner.info['device'], 'body': runner.info['body'],
+        'workers': workers, 'device': runner.info['device'],
+        'net_precision': runner.info['net_precision'], 'body': runner.info['body'],
         'tracking': config.tracking,
         'messages_written': dict(sorted(run.n_written.items())),
         'meshes': str(mesh_dir) if export_meshes else None,

@@ -127,6 +127,7 @@ class FrameProcessor:
 
     def info(self) -> dict:
         return dict(body=self.body.name, device=str(self.rec.device),
+                    net_precision=self.rec.net_precision,
                     joint_names=list(self.body.joint_names[1:]),
                     shape_names=list(self.body.shape_names),
                     num_pose=int(self.body.num_pose_joints), num_shape=int(self.body.num_shape))

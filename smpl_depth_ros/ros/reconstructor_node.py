@@ -635,6 +635,7 @@ class ReconstructorNode(Node):
             errors_now = sum(self._errors.values())
         values.update({
             'model': self._body.name, 'device': str(self._rec.device),
+            'net_precision': self._rec.net_precision,
             'tracking': self._config.tracking,
             'time_to_first_result_s': self._first_result_s if self._first_result_s
             is not None else 'none yet',

@@ -162,7 +162,8 @@ def bench_node(args) -> dict:
 
     Measures the node's sustained output rate (frames answered on ~/bodies/tracked, one
     message per frame whatever the number of persons), the stamp-to-receive latency of
-    each, the persons per frame, the dropped frames (offered vs answered) and its resident
+    each, the persons per frame, the dropped frames (offered vs answered), the CPU cores
+    the node and the driver use (CPU time over the run's wall time) and the node's resident
     memory (VmRSS from /proc) every `--sample-every` frames (default 10 % of the run).
     The soak verdict (`flat`): RSS growth over the last 80 % of the run below 5 MB and the
     p95 latency of the last 1,000 answers within 10 % of the first 1,000's.
@@ -194,6 +195,11 @@ def bench_node(args) -> dict:
     for p in args.param:
         exe += ['-p', p]
     proc = subprocess.Popen(exe, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+    def cpu_s():  # the node's user + system CPU time (s), from /proc/PID/stat
+        with open(f'/proc/{proc.pid}/stat') as f:
+            fields = f.read().rsplit(')', 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
 
     def rss_mb():
         with open(f'/proc/{proc.pid}/status') as f:
@@ -232,6 +238,7 @@ def bench_node(args) -> dict:
     recv_t.clear()
     persons.clear()
     rss0 = rss_mb()
+    cpu0, driver0, wall0 = cpu_s(), time.process_time(), time.monotonic()
     every = args.sample_every or max(args.frames // 10, 1)
     trace = []  # (frames offered, RSS MB, answers so far)
     period = 1.0 / args.rate
@@ -253,6 +260,8 @@ def bench_node(args) -> dict:
     while time.monotonic() < end:
         rclpy.spin_once(node, timeout_sec=0.05)
     rss1 = rss_mb()
+    wall = time.monotonic() - wall0
+    node_cores, driver_cores = (cpu_s() - cpu0) / wall, (time.process_time() - driver0) / wall
     proc.send_signal(2)
     try:
         proc.wait(timeout=20)
@@ -273,7 +282,8 @@ def bench_node(args) -> dict:
                 outputs=len(lat), output_rate_hz=(len(lat) - 1) / dur if len(lat) > 1 else 0.0,
                 latency_ms_p50=pct(lat, 50), latency_ms_p95=pct(lat, 95),
                 persons_per_frame_mean=float(np.mean(persons)) if persons else 0.0,
-                dropped=args.frames - len(lat), rss_mb_start=rss0, rss_mb_end=rss1,
+                dropped=args.frames - len(lat), node_cpu_cores=node_cores,
+                driver_cpu_cores=driver_cores, rss_mb_start=rss0, rss_mb_end=rss1,
                 rss_growth_mb=rss1 - rss0, rss_growth_last_80pct_mb=growth,
                 latency_ms_p95_first_1000=p95_first, latency_ms_p95_last_1000=p95_last,
                 flat=bool(growth < 5.0 and p95_last <= 1.1 * p95_first),
