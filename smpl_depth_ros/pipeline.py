@@ -29,7 +29,8 @@ from smpl_depth_ros.net.preprocess import (crop_depth, find_persons, network_inp
 from smpl_depth_ros.rectify import Lens, Rectifier
 from smpl_depth_ros.refine import (SurfaceParts, facing_camera, near_surface_pixels, rigid_icp,
                                    refine_correspondences)
-from smpl_depth_ros.segmentation import LabelSurface, paste_labels
+from smpl_depth_ros.segmentation import (LabelSurface, label_window,
+                                         paste_model_labels, paste_network_labels)
 from smpl_depth_ros.sensor_noise import (AutoNoise, NoiseModel, check_sensor, noise_model,
                                          scaled_reject_residual, scaled_spread)
 from smpl_depth_ros.tracking import MIN_OVERLAP, Tracker, candidate_centre
@@ -184,6 +185,22 @@ def on_raw_pixels(result: FrameResult, rect: Rectifier) -> FrameResult:
     net = result.network_labels
     return replace(result, persons=persons, labels=rect.to_raw(result.labels),
                    network_labels=None if net is None else rect.to_raw(net))
+
+
+@dataclass
+class Unfinished:
+    """What `Reconstructor.finish` does to a result of `reconstruct(..., finish=False)`:
+    paste the model labels of each person (`labels`: (person index, LabelWindow, fitted
+    vertices, the crop's scene planes)) with the frame's `depth` and `K` and the
+    segmentation settings of the frame (`margin_m`, `keep_network_m`), then move the
+    result onto the raw pixels of a lens-distorted frame (`rectifier`)."""
+
+    depth: np.ndarray
+    K: np.ndarray
+    labels: list
+    margin_m: float
+    keep_network_m: float
+    rectifier: Rectifier | None = None
 
 
 def joint_adjacency(parents) -> np.ndarray:
@@ -462,8 +479,12 @@ class Reconstructor:
             out.append((x, lab, coords))
         return out
 
-    def reconstruct(self, det: Detection) -> FrameResult:
+    def reconstruct(self, det: Detection, finish: bool = True) -> FrameResult:
         """The second stage of `process`: the persons of a frame `detect`ed (see there).
+        With `finish` False the last step, the persons' labels from their fitted meshes
+        (segmentation 'model') and the move onto a lens's raw pixels, is left to
+        `finish`, which needs no state of the reconstructor: a live node runs it on a
+        third thread beside the next frame's fits. The result is the same either way.
 
         Raises:
             InputError with reason 'no_person' when nobody is found.
@@ -487,8 +508,10 @@ class Reconstructor:
                              f'{cfg.depth_max:.2f} m')
         rejected = []  # (test, value, limit) of the fits rejected as no person (`_persons`)
         seen: set[int] = set()  # ids of the tracks seen in this frame
+        todo = Unfinished(d, K, [], cfg.model_label_margin_m, cfg.model_label_keep_network_m,
+                          det.rectifier)
         persons = self._persons(d, K, self._maybe_persons(crops), stamp_ns, timings,
-                                labels_full, network_full, rejected, noise, seen)
+                                network_full, todo, rejected, noise, seen)
         if not persons:
             # Second look: none of the candidates was a person, but a person standing
             # against a wall may be hidden in a blob too big for one: peel its planes;
@@ -504,16 +527,16 @@ class Reconstructor:
             timings['preprocess'] += (time.perf_counter() - tp) * 1e3
             new = self._maybe_persons(new)
             if new:
-                persons = self._persons(d, K, new, stamp_ns, timings, labels_full,
-                                        network_full, rejected, noise, seen)
+                persons = self._persons(d, K, new, stamp_ns, timings, network_full, todo,
+                                        rejected, noise, seen)
                 crops = crops + new
         other = self._other(det.net)
         if not persons and rejected and cfg.second_network and other is not None:
             # Third look: a body was seen but no fit explained it. The other shipped
             # network (broad poses and every sensor class, or the original) gets the same
             # candidates: a frame one network fails on, the other often gets.
-            persons = self._persons(d, K, list(crops), stamp_ns, timings, labels_full,
-                                    network_full, rejected, noise, seen, net=other)
+            persons = self._persons(d, K, list(crops), stamp_ns, timings, network_full,
+                                    todo, rejected, noise, seen, net=other)
         self.tracker.forget_fits(keep=seen)  # warm starts come from the previous frame only
         if not persons:
             residuals = [r for r in rejected if r[0] == 'residual']
@@ -539,10 +562,29 @@ class Reconstructor:
             raise InputError('no_person', 'person candidates found, but the network '
                              'segmented no body in them')
         result = FrameResult(persons=persons, labels=labels_full, timings_ms=timings,
-                             network_labels=network_full)
-        if det.rectifier is not None:
-            result = on_raw_pixels(result, det.rectifier)
+                             network_labels=network_full, unfinished=todo)
         timings['total'] = det.ms + det.ahead_ms + (time.perf_counter() - t0) * 1e3
+        return self.finish(result) if finish else result
+
+    def finish(self, result: FrameResult) -> FrameResult:
+        """The last step of `reconstruct` (see there), on its result; reads nothing the
+        next frame's `detect` or `reconstruct` changes. A finished result is returned
+        as it is."""
+        todo = result.unfinished
+        if todo is None:
+            return result
+        t0 = time.perf_counter()
+        persons = list(result.persons)
+        for k, win, vertices, planes in todo.labels:
+            persons[k] = replace(persons[k], mask=paste_model_labels(
+                result.labels, win, todo.depth, todo.K, vertices, self.label_surface,
+                planes, margin_m=todo.margin_m, keep_network_m=todo.keep_network_m))
+        result = replace(result, persons=persons, unfinished=None)
+        if todo.rectifier is not None:
+            result = on_raw_pixels(result, todo.rectifier)
+        ms = (time.perf_counter() - t0) * 1e3
+        result.timings_ms['labels'] += ms
+        result.timings_ms['total'] += ms
         return result
 
     def _maybe_persons(self, crops) -> list:
@@ -577,21 +619,21 @@ class Reconstructor:
         """The tracks' time (s) of a frame: its stamp, or frames counted at 30 Hz."""
         return stamp_ns * 1e-9 if stamp_ns is not None else self._frame / 30.0
 
-    def _persons(self, d, K, crops, stamp_ns, timings, labels_full, network_full,
+    def _persons(self, d, K, crops, stamp_ns, timings, network_full, todo: Unfinished,
                  rejected: list, noise: NoiseModel | None = None,
                  seen: set | None = None, net: CorrespondenceNet | None = None
                  ) -> list[PersonResult]:
         """Run the network on the candidates and fit them, until max_persons are found
-        (see `process`); writes their labels into labels_full (as `segmentation` says)
-        and the network's into network_full, and appends (test, value, limit) of every fit
-        rejected as no person to `rejected` (test 'residual': its median residual above
-        the limit; 'see_through': a further person's share of its visible side the sensor
-        sees through, above MAX_SEE_THROUGH; 'score': minus its body score, a new
-        person's (no track) below MIN_COLD_SCORE). `noise`: the sensor noise model; each
-        candidate's noise-dependent thresholds are widened for the excess noise at its
-        median depth (sensor_noise). Each candidate is matched to its track (tracking)
-        before it is fitted; `seen` collects the ids of the tracks of accepted persons.
-        `net`: the network to use (default: the frame's, `Detection.net`)."""
+        (see `process`); writes their network labels into network_full, adds their model
+        labels (segmentation 'model') to `todo` (`finish`), and appends (test, value,
+        limit) of every fit rejected as no person to `rejected` (test 'residual': its
+        median residual above the limit; 'see_through': a further person's share of its
+        visible side the sensor sees through, above MAX_SEE_THROUGH; 'score': minus its
+        body score, a new person's (no track) below MIN_COLD_SCORE). `noise`: the sensor
+        noise model; each candidate's noise-dependent thresholds are widened for the
+        excess noise at its median depth (sensor_noise). Each candidate is matched to
+        its track (tracking) before it is fitted; `seen` collects the ids of the tracks
+        of accepted persons. `net`: the network to use (default: the frame's, `Detection.net`)."""
         cfg = self.config
         net = net or self._frame_net
         seen = set() if seen is None else seen
@@ -774,10 +816,12 @@ class Reconstructor:
                 track.fit = None
             timings['fit'] += (time.perf_counter() - tf) * 1e3
             tl = time.perf_counter()
-            mask = paste_labels(labels_full, network_full, crop, lab[i], d, K, fit.vertices,
-                                self.label_surface, segmentation=cfg.segmentation,
-                                margin_m=cfg.model_label_margin_m,
-                                keep_network_m=cfg.model_label_keep_network_m)
+            # The person's pixels for this frame's claims and their track: their body
+            # pixels in the network's labels (the model labels come last, `finish`).
+            win = label_window(crop, lab[i], d)
+            mask = paste_network_labels(network_full, win)
+            if cfg.segmentation == 'model':
+                todo.labels.append((len(persons), win, fit.vertices, crop.planes))
             timings['labels'] += (time.perf_counter() - tl) * 1e3
             seen.add(id(track))
             Tracker.seen(track, fit.joints[0], t, mask)

@@ -1,9 +1,10 @@
 """A reconstructed person's pixels and their body-part labels in the full image (no ROS).
 
-`paste_labels` writes one person's labels into the frame's label images: the network's
-labels as they are, and with segmentation 'model' (the default) those of the fitted mesh
-(`model_labels`): each pixel takes the part of its nearest fitted surface sample
-(`LabelSurface`), and pixels the network called background join the person near the mesh.
+A person's window of the frame (`label_window`) gets the network's labels as they are
+(`paste_network_labels`) and, with segmentation 'model' (the default), those of the fitted
+mesh (`paste_model_labels`, `model_labels`): each pixel takes the part of its nearest
+fitted surface sample (`LabelSurface`), and pixels the network called background join the
+person near the mesh.
 """
 from __future__ import annotations
 
@@ -64,29 +65,35 @@ class LabelSurface:
             'sk,fkd->fsd', _CORNER_BARY, vertices[self.faces]).reshape(-1, 3)])
 
 
-def paste_labels(labels_full, network_full, crop, lab, depth, K, vertices,
-                 surface: LabelSurface, *, segmentation: str, margin_m: float,
-                 keep_network_m: float) -> np.ndarray:
-    """Write this person's labels into the full image and return its (H, W) mask.
+@dataclass
+class LabelWindow:
+    """One person's window of the frame (its crop's box, clipped to the image), with
+    the pixels that may be theirs (`region`: valid, within NEAR_RANGE of the crop's
+    median depth, others' blobs excluded), the network's labels there (`net`,
+    nearest-neighbour from the crop) and its body pixels among them (`fg`)."""
 
-    The person's pixels are the valid ones in its crop window within NEAR_RANGE of its
-    median depth, others' blobs excluded (`crop`: its net.preprocess.Crop; `depth` and
-    `K`: the frame's). `network_full` gets the network's labels
-    (nearest-neighbour from the crop `lab`) where they say body. With segmentation
-    'model' (the default) `labels_full` gets, on those pixels and on the ones within
-    `margin_m` (model_label_margin_m) of the fitted mesh `vertices` (body the network
-    missed: a hand, an arm's edge), the part of the nearest fitted vertex: the fit, which
-    draws on all the frame's pixels and the body's shape, puts part borders where the
-    body has them (val_s2: mIoU 0.761 -> 0.858; the network's labels are kept beside
-    them). `keep_network_m`: model_label_keep_network_m (see `model_labels`).
-    """
-    H, W = labels_full.shape
-    u0, v0 = max(int(np.floor(crop.u0)), 0), max(int(np.floor(crop.v0)), 0)
-    u1 = min(int(np.ceil(crop.u0 + crop.scale * crop.size)), W)
-    v1 = min(int(np.ceil(crop.v0 + crop.scale * crop.size)), H)
-    m = np.zeros((H, W), bool)
-    if u1 <= u0 or v1 <= v0:
+    u0: int
+    v0: int
+    u1: int
+    v1: int
+    region: np.ndarray
+    net: np.ndarray
+    fg: np.ndarray
+
+    def full(self, window_mask: np.ndarray, shape) -> np.ndarray:
+        """(H, W) bool: `window_mask` placed in the frame."""
+        m = np.zeros(shape, bool)
+        m[self.v0:self.v1, self.u0:self.u1] = window_mask
         return m
+
+
+def label_window(crop, lab: np.ndarray, depth: np.ndarray) -> LabelWindow:
+    """The `LabelWindow` of a person whose crop (`crop`: its net.preprocess.Crop) the
+    network labelled `lab` (S, S), in the frame's `depth`."""
+    H, W = depth.shape
+    u0, v0 = max(int(np.floor(crop.u0)), 0), max(int(np.floor(crop.v0)), 0)
+    u1 = max(min(int(np.ceil(crop.u0 + crop.scale * crop.size)), W), u0)
+    v1 = max(min(int(np.ceil(crop.v0 + crop.scale * crop.size)), H), v0)
     i = np.clip(((np.arange(v0, v1) + 0.5 - crop.v0) / crop.scale).astype(np.int64), 0,
                 crop.size - 1)
     j = np.clip(((np.arange(u0, u1) + 0.5 - crop.u0) / crop.scale).astype(np.int64), 0,
@@ -96,14 +103,34 @@ def paste_labels(labels_full, network_full, crop, lab, depth, K, vertices,
     region = (dw > 0) & (np.abs(dw - crop.median_depth) < NEAR_RANGE)
     if crop.exclude is not None:
         region &= ~crop.exclude[v0:v1, u0:u1]
-    keep = (v > 0) & region
-    network_full[v0:v1, u0:u1][keep] = v[keep]
-    if segmentation == 'model':
-        keep, v = model_labels(region, keep, v, dw, K, u0, v0, vertices, surface,
-                               crop.planes, margin_m, keep_network_m)
-        labels_full[v0:v1, u0:u1][keep] = v[keep]
-    m[v0:v1, u0:u1] = keep
-    return m
+    return LabelWindow(u0, v0, u1, v1, region, v, (v > 0) & region)
+
+
+def paste_network_labels(network_full: np.ndarray, win: LabelWindow) -> np.ndarray:
+    """Write the network's labels of a person's body pixels into the frame's
+    `network_full` and return the (H, W) mask of those pixels."""
+    network_full[win.v0:win.v1, win.u0:win.u1][win.fg] = win.net[win.fg]
+    return win.full(win.fg, network_full.shape)
+
+
+def paste_model_labels(labels_full: np.ndarray, win: LabelWindow, depth: np.ndarray,
+                       K: np.ndarray, vertices: np.ndarray, surface: LabelSurface, planes,
+                       *, margin_m: float, keep_network_m: float) -> np.ndarray:
+    """Segmentation 'model' (the default): write a person's labels from their fitted
+    mesh `vertices` into `labels_full` and return the (H, W) mask of their pixels: the
+    window's body pixels, and the ones of its region within `margin_m`
+    (model_label_margin_m) of the mesh (body the network missed: a hand, an arm's edge),
+    each with the part of the nearest fitted surface: the fit, which draws on all the
+    frame's pixels and the body's shape, puts part borders where the body has them
+    (val_s2: mIoU 0.761 -> 0.858). `planes`: the crop's scene planes;
+    `keep_network_m`: model_label_keep_network_m (both: see `model_labels`)."""
+    if not win.region.any():
+        return win.full(win.region, labels_full.shape)
+    dw = depth[win.v0:win.v1, win.u0:win.u1]
+    keep, v = model_labels(win.region, win.fg, win.net, dw, K, win.u0, win.v0, vertices,
+                           surface, planes, margin_m, keep_network_m)
+    labels_full[win.v0:win.v1, win.u0:win.u1][keep] = v[keep]
+    return win.full(keep, labels_full.shape)
 
 
 def model_labels(region, fg, net, dw, K, u0, v0, vertices, surface: LabelSurface, planes,

@@ -81,9 +81,13 @@ class FrameResult:
         network_labels: (H, W) uint8, the network's own labels (the same array as
             `labels` with segmentation 'network'; with 'model', `labels` come from the
             fitted mesh).
+        unfinished: None, except in the result of `Reconstructor.reconstruct(...,
+            finish=False)`: what `Reconstructor.finish` still has to do (until then
+            `labels` and the persons' masks are the network's).
     """
 
     persons: list[PersonResult]
     labels: np.ndarray
     timings_ms: dict[str, float] = field(default_factory=dict)
     network_labels: np.ndarray | None = None
+    unfinished: object | None = field(default=None, repr=False)  # see Reconstructor.finish

@@ -440,10 +440,11 @@ def test_a_frame_whose_fits_are_all_rejected_says_so(rec):
 
 def test_detecting_the_next_frame_first_changes_nothing(rec):
     """The live node detects frame t + 1 (`Reconstructor.detect`) and makes its network
-    passes ahead (`look_ahead`) before frame t is reconstructed (`reconstruct`): on a
-    sequence of two people walking, with tracking, several persons and the 'auto' sensor
-    noise, that order gives exactly what `process` gives frame by frame, IDs, meshes,
-    pixels and labels alike, and the passes made ahead are used."""
+    passes ahead (`look_ahead`) before frame t is reconstructed (`reconstruct`), and
+    finishes frame t (`finish`: the labels from the fitted meshes) after frame t + 1 is
+    reconstructed: on a sequence of two people walking, with tracking, several persons and
+    the 'auto' sensor noise, that order gives exactly what `process` gives frame by
+    frame, IDs, meshes, pixels and labels alike, and the passes made ahead are used."""
     from smpl_depth_ros.synth.dataset import make_multi_sequence
 
     seq = make_multi_sequence(rec.body, PoseSampler(rec.body), np.random.default_rng(31),
@@ -465,14 +466,20 @@ def test_detecting_the_next_frame_first_changes_nothing(rec):
                 for f, s in zip(frames, stamps)]
     dets = [ahead.detect(frames[0]['depth'], frames[0]['K'], stamp_ns=stamps[0])]
     ahead.look_ahead(dets[0])
-    got, in_reconstruct = [], 0
+    got, in_reconstruct, unfinished = [], 0, []
     for f, s in zip(frames[1:] + [None], stamps[1:] + [None]):
         if f is not None:
             dets.append(ahead.detect(f['depth'], f['K'], stamp_ns=s))
             ahead.look_ahead(dets[-1])
         passes_ahead.clear()
-        got.append(out(ahead.reconstruct(dets[-2] if f is not None else dets[-1])))
+        r = ahead.reconstruct(dets[-2] if f is not None else dets[-1], finish=False)
+        assert r.unfinished is not None and not r.labels.any()
+        unfinished.append(r)
         in_reconstruct += len(passes_ahead)
+        if len(unfinished) == 2:
+            got.append(out(ahead.finish(unfinished.pop(0))))
+    got.append(out(ahead.finish(unfinished.pop(0))))
+    assert len(got) == len(expected)
     # Most passes were made ahead (the first frame's ranking needs them all).
     assert in_reconstruct < 0.5 * len(passes_one)
     assert sum(len(d.passes) for d in dets) >= len(passes_one) - in_reconstruct

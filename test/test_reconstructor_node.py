@@ -124,14 +124,14 @@ class Core:
     def detect(self, depth, K, stamp_ns=None, lens=None):
         return self._rec.detect(depth, K, stamp_ns=stamp_ns, lens=lens)
 
-    def reconstruct(self, det):
+    def reconstruct(self, det, finish=True):
         self.busy = True
         t0 = time.monotonic()
         try:
             if self.delay:
                 time.sleep(self.delay)
             self.calls += 1
-            return self._rec.reconstruct(det)
+            return self._rec.reconstruct(det, finish=finish)
         finally:
             self.durations.append(time.monotonic() - t0)
             self.busy = False

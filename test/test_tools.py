@@ -76,10 +76,11 @@ def test_benchmark_net_writes_json(tmp_path):
     out = tmp_path / 'net.json'
     assert benchmark.main(['net', '--repeats', '3', '--json', str(out)]) == 0
     res = json.loads(out.read_text())
-    for kind in ('double', 'single'):
+    for kind in ('double', 'single', 'double_bfloat16', 'single_bfloat16'):
         for key in ('net_ms_median', 'net_ms_p95', 'net_tta_ms_median', 'net_tta_ms_p95',
                     'lookup_ms_median', 'params'):
             assert res[kind][key] > 0, (kind, key)
+    assert isinstance(res['bfloat16_units'], bool)
 
 
 def test_benchmark_empty_times_frames_with_nobody_in_them(tmp_path):

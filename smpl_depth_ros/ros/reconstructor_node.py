@@ -10,16 +10,17 @@ Topics (relative names, remappable):
                 /diagnostics (diagnostic_msgs/DiagnosticArray)
 
 Threading: the subscription callbacks only convert the message and drop the frame into a
-one-slot mailbox (a newer frame overwrites a stale one, which is counted as dropped). Two
+one-slot mailbox (a newer frame overwrites a stale one, which is counted as dropped). Three
 worker threads run the core one frame apart: once the reconstructor has taken a frame, the
 detector takes the newest one, timed to be done when the reconstructor usually is, and
 runs `Reconstructor.detect` (checks, sensor noise, person candidates) and
 `Reconstructor.look_ahead` (the network passes of the candidates likely to be persons);
-the reconstructor runs `Reconstructor.reconstruct` (the network passes still missing, fit,
-labels, tracks) and publishes. Their results are those of `Reconstructor.process` frame by
-frame; on two cores one person's stream is answered about 30 % more often at the same
-latency. A changed configuration is applied by the detector while both are idle. ROS
-entities are created and destroyed on the main (executor) thread only.
+the reconstructor runs `Reconstructor.reconstruct` (the network passes still missing, fits,
+tracks) and hands the result to the publisher, which runs `Reconstructor.finish` (the
+labels from the fitted meshes) and publishes, beside the next frame's fits. Their results
+are those of `Reconstructor.process` frame by frame. A changed configuration is applied by
+the detector while the detector and the reconstructor are idle. ROS entities are created
+and destroyed on the main (executor) thread only.
 
 Camera distortion: with a non-zero D the depth image is taken as a rectified one, seen
 through camera_info's P (the ROS convention; reported once in the log and in diagnostics),
@@ -119,9 +120,10 @@ class Mailbox:
 
 
 class Handoff:
-    """One-slot hand-off of a detected frame from the detector to the reconstructor. The
-    detector waits for the slot to be free (`wait_free`) before it takes the newest
-    frame, so nothing is dropped here; `busy` is True from `take` to `done`."""
+    """One-slot hand-off of a frame from one worker thread to the next: detected, from
+    the detector to the reconstructor; reconstructed, from the reconstructor to the
+    publisher. The giver waits for the slot to be free (`wait_free`) before it takes
+    on the next frame, so nothing is dropped here; `busy` is True from `take` to `done`."""
 
     def __init__(self):
         self._cv = threading.Condition()
@@ -235,6 +237,7 @@ class ReconstructorNode(Node):
         self._diag_lock = threading.Lock()        # /diagnostics publisher (two threads)
         self._mailbox = Mailbox()
         self._handoff = Handoff()
+        self._finishing = Handoff()  # reconstructed, to finish and publish
         self._stage_s = [0.0, 0.0]                # usual detection, reconstruction (s)
         self._stage_times = (deque(maxlen=STAGE_FRAMES), deque(maxlen=STAGE_FRAMES))
         self._stop = threading.Event()
@@ -299,8 +302,11 @@ class ReconstructorNode(Node):
                                           name='reconstructor-detector', daemon=True)
         self._worker = threading.Thread(target=self._run_worker, name='reconstructor-worker',
                                         daemon=True)
+        self._publisher = threading.Thread(target=self._run_publisher,
+                                           name='reconstructor-publisher', daemon=True)
         self._detector.start()
         self._worker.start()
+        self._publisher.start()
         log.info(f"listening on '{self._sub_depth.topic_name}' + "
                  f"'{self._sub_info.topic_name}' ({self._values['qos_reliability']}, depth "
                  f"{self._values['qos_depth']})")
@@ -535,6 +541,17 @@ class ReconstructorNode(Node):
                 self._stage_time(1, time.monotonic() - t0)
                 self._handoff.done()
 
+    def _run_publisher(self):
+        while not self._stop.is_set():
+            item = self._finishing.take(timeout=0.1)
+            if item is None:
+                continue
+            try:
+                if not self._stop.is_set():
+                    self._finish(*item)
+            finally:
+                self._finishing.done()
+
     def _stage_time(self, stage: int, seconds: float) -> None:
         """Follow the usual time of a detection (0) and a reconstruction (1): the median of
         the last STAGE_FRAMES (the occasional slow frame, a further candidate fitted,
@@ -544,11 +561,24 @@ class ReconstructorNode(Node):
         self._stage_s[stage] = float(np.median(times))
 
     def _reconstruct(self, frame: Frame, det):
+        rec = self._rec
         try:
-            result = self._rec.reconstruct(det)
+            result = rec.reconstruct(det, finish=False)
         except InputError as e:
             self._report(e, frame.header)
             return
+        except Exception as e:  # noqa: BLE001 - a bad frame must not kill the node
+            self._report(InputError('internal', f'{type(e).__name__}: {e}'), frame.header)
+            return
+        # To the publisher, once it has published the frame before (it is quicker).
+        while not self._finishing.wait_free(0.1):
+            if self._stop.is_set():
+                return
+        self._finishing.put((frame, result, rec))
+
+    def _finish(self, frame: Frame, result, rec):
+        try:
+            result = rec.finish(result)
         except Exception as e:  # noqa: BLE001 - a bad frame must not kill the node
             self._report(InputError('internal', f'{type(e).__name__}: {e}'), frame.header)
             return
@@ -615,7 +645,8 @@ class ReconstructorNode(Node):
                 'frames_processed': self._stats['processed'],
                 'frames_published': pub,
                 'frames_dropped': self._mailbox.dropped,
-                'frames_pending': self._mailbox.pending() + self._handoff.pending(),
+                'frames_pending': (self._mailbox.pending() + self._handoff.pending()
+                                   + self._finishing.pending()),
                 'frames_no_camera_info': self._errors['no_camera_info'],
                 'frames_rejected': sum(self._errors.values()),
                 'latency_stamp_ms_p50': sp50, 'latency_stamp_ms_p95': sp95,
@@ -669,11 +700,13 @@ class ReconstructorNode(Node):
         self._stop.set()
         self._mailbox.wake()
         self._handoff.wake()
+        self._finishing.wake()
         end = time.monotonic() + timeout
-        for th in (self._detector, self._worker):
+        threads = (self._detector, self._worker, self._publisher)
+        for th in threads:
             if th.is_alive() and threading.current_thread() is not th:
                 th.join(max(0.0, end - time.monotonic()))
-        return not (self._detector.is_alive() or self._worker.is_alive())
+        return not any(th.is_alive() for th in threads)
 
     def destroy_node(self):
         self.stop()

@@ -115,22 +115,23 @@ def bench_fit(args) -> dict:
 
 def bench_net(args) -> dict:
     """Network + Eq. 2 lookup time per crop on this machine (batch 1, after warm-up):
-    one pass (`net_ms_*`) and with the mirrored pass of flip_tta, the pipeline's default
-    (`net_tta_ms_*`)."""
+    one pass (`net_ms_*`) and with the mirrored pass of flip_tta (`net_tta_ms_*`), in
+    float32 and, as rows `<kind>_bfloat16`, in bfloat16 (`net_precision`; the default
+    'auto' takes it where `bfloat16_units` says, `bfloat16_units` in the JSON)."""
     import time
 
     import torch
     torch.set_num_threads(args.threads or max(1, os.cpu_count() or 1))
     from smpl_depth_ros.body import load_body_model
     from smpl_depth_ros.net.data import make_fixed_set
-    from smpl_depth_ros.net.infer import CorrespondenceNet
+    from smpl_depth_ros.net.infer import CorrespondenceNet, bfloat16_units, default_weights
     body = load_body_model('anny')
     out = {}
     x, _, _, _ = make_fixed_set(body, 8, seed=5)
     x = x.numpy()
-    for kind in ('double', 'single'):
-        from smpl_depth_ros.net.infer import default_weights
-        net = CorrespondenceNet(body, default_weights('anny', kind))
+    for kind, precision in (('double', 'float32'), ('single', 'float32'),
+                            ('double', 'bfloat16'), ('single', 'bfloat16')):
+        net = CorrespondenceNet(body, default_weights('anny', kind), precision=precision)
         for i in range(3):
             net.predict(x[i:i + 1])
         tn, tt, tl = [], [], []
@@ -146,14 +147,16 @@ def bench_net(args) -> dict:
             tl.append((time.perf_counter() - t2) * 1e3)
             tn.append((t1 - t0) * 1e3)
             tt.append((t2 - t1) * 1e3)
-        out[kind] = dict(net_ms_median=float(np.median(tn)),
-                         net_ms_p95=float(np.percentile(tn, 95)),
-                         net_tta_ms_median=float(np.median(tt)),
-                         net_tta_ms_p95=float(np.percentile(tt, 95)),
-                         lookup_ms_median=float(np.median(tl)),
-                         params=int(sum(p.numel() for p in net.net.parameters())))
+        row = kind if precision == 'float32' else f'{kind}_{precision}'
+        out[row] = dict(net_ms_median=float(np.median(tn)),
+                        net_ms_p95=float(np.percentile(tn, 95)),
+                        net_tta_ms_median=float(np.median(tt)),
+                        net_tta_ms_p95=float(np.percentile(tt, 95)),
+                        lookup_ms_median=float(np.median(tl)),
+                        params=int(sum(p.numel() for p in net.net.parameters())))
     out['threads'] = torch.get_num_threads()
     out['device'] = 'cpu'
+    out['bfloat16_units'] = bfloat16_units()
     return out
 
 
