@@ -110,8 +110,7 @@ def run_sweep(sensors, bins, frames, seed, poses, overrides, strength=1.0, progr
                                      np.where(valid, fr['labels'], 0))
             mm = lambda v, f: round(float(f(v)) * 1e3, 1) if v else None  # noqa: E731
             row = dict(sensor=name + (f'+{lens}' if lens else ''), kind=sensor.kind,
-                       bin=[lo, hi], depth=[round(a, 2),
-                                                                        round(b, 2)],
+                       bin=[lo, hi], depth=[round(a, 2), round(b, 2)],
                        frames=frames, reconstructed=round(len(pve) / frames, 3),
                        pve_mm=mm(pve, np.mean), pve_mm_median=mm(pve, np.median),
                        surface_mm_median=mm(sd_med, np.median),
