@@ -33,6 +33,7 @@ def _sensor_choices() -> tuple[str, ...]:
 
 
 _A = dict(advanced=True)
+PRECISIONS = ('auto', 'float32', 'bfloat16')  # net_precision (net.infer.resolve_precision)
 
 
 @dataclass(frozen=True)
@@ -136,7 +137,7 @@ class PipelineConfig:
     net_precision: str = param('auto', "the network's arithmetic: 'auto' (bfloat16 on a CPU "
                                'with bfloat16 units, AMX: about twice as fast, 99.8 % of '
                                "the labels the same; float32 elsewhere), 'float32' or "
-                               "'bfloat16'", choices=('auto', 'float32', 'bfloat16'))
+                               "'bfloat16'", choices=PRECISIONS)
     flip_tta: bool = param(False, 'run the network on each crop and its mirror image and '
                            'average (twice the network time; better segmentation and fits)')
     second_network: bool = param(True, 'when a body was seen but no fit explained it, retry '

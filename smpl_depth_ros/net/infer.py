@@ -8,14 +8,12 @@ import numpy as np
 import torch
 
 from smpl_depth_ros.body.parts import MIRROR, PART_COLORS, EmbeddingIndex, template_embedding
+from smpl_depth_ros.config import PRECISIONS
 from smpl_depth_ros.net.unet import IN_CHANNELS, INPUT_SIZE, build_network
 
 
 def default_weights(backend: str, kind: str = 'double') -> str:
     return str(resources.files('smpl_depth_ros') / 'data' / f'corr_{backend}_{kind}.pt')
-
-
-PRECISIONS = ('auto', 'float32', 'bfloat16')
 
 
 def bfloat16_units() -> bool:
