@@ -20,7 +20,8 @@ from smpl_depth_ros.config import (EXTRA_CANDIDATES, GIVE_UP, HELD_BODY_GAIN, MA
                                    MAX_SEE_THROUGH, MIN_BEHIND, MIN_BODY_PIXELS,
                                    MIN_BODY_SHARE, MIN_COLD_SCORE, MIN_PART_SHARE,
                                    NEAREST_CANDIDATES, NOT_PERSON_FRAMES, NOT_PERSON_IOU,
-                                   SECOND_LOOK_CANDIDATES, PipelineConfig)
+                                   SECOND_LOOK_CANDIDATES, SECOND_LOOK_EVERY,
+                                   PipelineConfig)
 from smpl_depth_ros.fit import Fitter, backproject  # noqa: F401  (re-exported)
 from smpl_depth_ros.fit.freespace import FreeSpace, see_through_share, supporting_planes
 from smpl_depth_ros.net.infer import CorrespondenceNet, broad_weights
@@ -69,6 +70,8 @@ class Detection:
         ahead_ms: time those passes and lookups took (counted as the network's).
         rectifier: the lens's maps when the frame was resampled from a lens's own image
             (`undistort`; `depth` and `K` are then the pinhole image's), else None.
+        too_big: blobs person finding left whole, too big for one person (a person
+            may be merged into one: `reconstruct`'s second look peels them).
     """
 
     depth: np.ndarray
@@ -82,6 +85,7 @@ class Detection:
     passes: dict = field(default_factory=dict)
     ahead_ms: float = 0.0
     rectifier: Rectifier | None = None
+    too_big: int = 0
 
 
 def resolve_device(name: str) -> torch.device:
@@ -405,12 +409,14 @@ class Reconstructor:
             else:
                 K = np.asarray(lens.P, np.float64)
         noise = self._noise_for(d, K)
+        report: dict = {}
         crops = find_persons(d, K, cfg.depth_min, cfg.depth_max, cfg.min_person_pixels,
                              max_persons=max(cfg.max_persons, 1) + EXTRA_CANDIDATES,
                              nearest=NEAREST_CANDIDATES,
-                             noise=None if noise is None else noise.excess)
+                             noise=None if noise is None else noise.excess, report=report)
         return Detection(d, K, stamp_ns, self._frames, noise, self.net, crops,
-                         (time.perf_counter() - t0) * 1e3, rectifier=rect)
+                         (time.perf_counter() - t0) * 1e3, rectifier=rect,
+                         too_big=report.get('too_big', 0))
 
     def _rectifier(self, K: np.ndarray, lens: Lens, shape) -> Rectifier:
         """The lens maps of a camera (made once per camera: the last one is kept)."""
@@ -510,12 +516,18 @@ class Reconstructor:
         seen: set[int] = set()  # ids of the tracks seen in this frame
         todo = Unfinished(d, K, [], cfg.model_label_margin_m, cfg.model_label_keep_network_m,
                           det.rectifier)
+        warm = {id(tr) for tr in self.tracker.tracks if tr.fit is not None}
         persons = self._persons(d, K, self._maybe_persons(crops), stamp_ns, timings,
                                 network_full, todo, rejected, noise, seen)
-        if not persons:
+        if not persons or (len(persons) < cfg.max_persons and det.too_big and (
+                warm - seen or det.index % SECOND_LOOK_EVERY == 1)):
             # Second look: none of the candidates was a person, but a person standing
             # against a wall may be hidden in a blob too big for one: peel its planes;
             # and the person may be a less central blob than those tried: take more.
+            # Also when fewer persons than wanted were found and such a blob was left
+            # whole, if a person tracked in the frame before is missing, and on the
+            # first frame and every SECOND_LOOK_EVERY-th after: a person joined to the
+            # floor, a box or a wall by the sensor's noise (stereo), or to another person.
             tp = time.perf_counter()
             again = find_persons(d, K, cfg.depth_min, cfg.depth_max, cfg.min_person_pixels,
                                  max_persons=max(cfg.max_persons, 1) + SECOND_LOOK_CANDIDATES,
@@ -524,11 +536,14 @@ class Reconstructor:
             sizes = [int(c.mask.sum()) for c in again]
             new = [c for c, n in zip(again, sizes) if not any(
                 n == k and np.array_equal(c.mask, m) for k, m in tried)]
+            if persons:  # not the persons found again (a limb, a piece cut off them)
+                found = np.logical_or.reduce([p.mask for p in persons])
+                new = [c for c in new if (c.mask & found).sum() <= MAX_CLAIMED * c.mask.sum()]
             timings['preprocess'] += (time.perf_counter() - tp) * 1e3
             new = self._maybe_persons(new)
             if new:
                 persons = self._persons(d, K, new, stamp_ns, timings, network_full, todo,
-                                        rejected, noise, seen)
+                                        rejected, noise, seen, found=persons)
                 crops = crops + new
         other = self._other(det.net)
         if not persons and rejected and cfg.second_network and other is not None:
@@ -621,8 +636,8 @@ class Reconstructor:
 
     def _persons(self, d, K, crops, stamp_ns, timings, network_full, todo: Unfinished,
                  rejected: list, noise: NoiseModel | None = None,
-                 seen: set | None = None, net: CorrespondenceNet | None = None
-                 ) -> list[PersonResult]:
+                 seen: set | None = None, net: CorrespondenceNet | None = None,
+                 found: list | None = None) -> list[PersonResult]:
         """Run the network on the candidates and fit them, until max_persons are found
         (see `process`); writes their network labels into network_full, adds their model
         labels (segmentation 'model') to `todo` (`finish`), and appends (test, value,
@@ -633,13 +648,17 @@ class Reconstructor:
         noise model; each candidate's noise-dependent thresholds are widened for the
         excess noise at its median depth (sensor_noise). Each candidate is matched to
         its track (tracking) before it is fitted; `seen` collects the ids of the tracks
-        of accepted persons. `net`: the network to use (default: the frame's, `Detection.net`)."""
+        of accepted persons. `net`: the network to use (default: the frame's, `Detection.net`).
+        `found`: the persons found in the frame so far (a second look): returned with those
+        added, their pixels claimed, their tracks in `seen`."""
         cfg = self.config
         net = net or self._frame_net
         seen = set() if seen is None else seen
         t = self._clock(stamp_ns)
-        persons = []
+        persons = list(found or [])
         claimed = np.zeros(d.shape, bool)  # pixels of the persons reconstructed so far
+        for p in persons:
+            claimed |= p.mask
         split_done: set[int] = set()  # halves of split candidates are not split again
         plain_retried: set[int] = set()  # flip_tta: candidates retried on the plain pass
         x, lab, coords = [], [], []  # network inputs and outputs, per candidate so far
@@ -648,7 +667,7 @@ class Reconstructor:
             crops, x, lab, coords, plain = self._rank_candidates(d, crops, timings, net)
         track_of = dict(zip(map(id, crops), self.tracker.match(
             np.array([candidate_centre(c, K) for c in crops]).reshape(-1, 3),
-            [c.mask for c in crops], t)))
+            [c.mask for c in crops], t, exclude=seen)))
         for i, crop in enumerate(crops):
             if len(persons) >= cfg.max_persons:
                 break

@@ -495,3 +495,30 @@ def test_a_near_person_at_the_side_is_a_candidate_beside_far_wall_pieces():
                           axis=2)  # (found, true) pelvis distances
     assert sorted(gaps.argmin(1)) == [0, 1, 2]
     assert gaps.min(1).max() < 0.3
+
+
+def test_a_person_merged_into_a_blob_too_big_for_one_is_found_by_the_second_look():
+    """test/data/three_people_oak_d.npz: three people (2.1, 3.2 and 4.4 m) seen by an
+    OAK-D; the stereo noise joins the nearest, at the left, to a floor and wall piece into
+    one blob too big for one person, which the first pass leaves whole (and reports). Two
+    people are found in the first pass, so the "nobody found" second look would not run;
+    the second look for a blob too big for one (on the first frame, and when a tracked
+    person is missing) peels it, and all three are reconstructed."""
+    from smpl_depth_ros.config import EXTRA_CANDIDATES, NEAREST_CANDIDATES, PipelineConfig
+    from smpl_depth_ros.net.preprocess import find_persons
+    from smpl_depth_ros.pipeline import Reconstructor
+    f = np.load('test/data/three_people_oak_d.npz')
+    depth, K, who = f['depth_mm'] / 1000.0, f['K'], f['person_index']
+    cfg = PipelineConfig(tracking=False, device='cpu', max_persons=3)
+    report: dict = {}
+    crops = find_persons(depth, K, cfg.depth_min, cfg.depth_max, cfg.min_person_pixels,
+                         max_persons=cfg.max_persons + EXTRA_CANDIDATES,
+                         nearest=NEAREST_CANDIDATES, report=report)
+    near = who == 2
+    assert report['too_big'] >= 1
+    assert not any((c.mask & near).sum() > 0.5 * near.sum() for c in crops)
+    persons = Reconstructor(cfg).process(depth, K).persons
+    gaps = np.linalg.norm(f['pelvis'][None] - np.array([p.joints[0] for p in persons])[:, None],
+                          axis=2)  # (found, true) pelvis distances
+    assert sorted(gaps.argmin(1)) == [0, 1, 2]
+    assert gaps.min(1).max() < 0.3

@@ -591,7 +591,8 @@ def _candidates(fg, depth, d, K, s, min_px, max_persons, depth_min, depth_max,
 
 def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: float,
                  min_pixels: int = 400, max_persons: int = 5, seed: int = 0,
-                 peel: bool = False, noise=None, nearest: int = 0) -> list[Crop]:
+                 peel: bool = False, noise=None, nearest: int = 0,
+                 report: dict | None = None) -> list[Crop]:
     """Person candidates in a depth image, most central first (see the module doc).
 
     Args:
@@ -608,6 +609,9 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
             (`fill_small_holes`).
         nearest: beyond the max_persons most central candidates, this many of the
             others, the nearest (step 5).
+        report: when given, set report['too_big'] to the number of blobs too big for
+            one person that were left unpeeled (a person may be merged into one: a
+            second look with `peel` would look inside them).
 
     Returns:
         Crops (with `mask`, and `exclude` where a neighbour is big enough), at most
@@ -655,8 +659,11 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
             fg[rr[on_plane], cc[on_plane]] = False
             peeled = np.zeros_like(fg) if peeled is None else peeled
             peeled[rr[on_plane], cc[on_plane]] = True
+        rejected = []
         crops, _, _ = _candidates(fg & ~edges, depth, d, K, s, min_px, max_persons,
                                   depth_min, depth_max, alone=peel, core=core)
+    if report is not None:
+        report['too_big'] = len(rejected)
     crops.sort(key=lambda t: t[0])
     crops = [c for _, c in crops]
     _mark_behind(crops)
