@@ -464,6 +464,41 @@ def test_stored_person_near_a_wall_on_a_strip_of_floor_is_found():
     assert np.linalg.norm(p.vertices - f['vertices'], axis=1).mean() < 0.04
 
 
+def test_training_in_bfloat16_follows_float32(body, tmp_path):
+    """--precision bfloat16: the forward pass runs under autocast, the loss and the
+    gradients stay those of float32 within bfloat16's rounding, the weights and the
+    optimiser stay float32, and the command runs end to end."""
+    import argparse
+    import copy
+
+    from smpl_depth_ros.net import train
+    from smpl_depth_ros.net.data import make_fixed_set
+    x, labels, coords, cmask = make_fixed_set(body, 4, 5)
+    base = argparse.Namespace(kind='double', ema=0.0, coord_weight=20.0, precision='float32')
+    runs = {}
+    for precision in ('float32', 'bfloat16'):
+        torch.manual_seed(0)
+        r = train._Run(argparse.Namespace(**{**vars(base), 'precision': precision}), 1e-3,
+                       str(tmp_path / f'{precision}.pt'), '', torch.device('cpu'), None)
+        before = copy.deepcopy(r.net.state_dict())
+        r.train_step(x, labels, coords, cmask, None, 0.5)
+        runs[precision] = (r, before)
+    (f32, b32), (b16, _) = runs['float32'], runs['bfloat16']
+    assert abs(b16.run_loss - f32.run_loss) < 0.05 * f32.run_loss
+    step32 = torch.cat([(p - b32[k]).flatten() for k, p in f32.net.state_dict().items()
+                        if p.is_floating_point()])
+    step16 = torch.cat([(p - b32[k]).flatten() for k, p in b16.net.state_dict().items()
+                        if p.is_floating_point()])
+    assert float(torch.nn.functional.cosine_similarity(step32, step16, dim=0)) > 0.9
+    assert not torch.equal(step32, step16)  # bfloat16 did run
+    assert all(p.dtype == torch.float32 for p in b16.net.parameters())
+    out = tmp_path / 'w.pt'
+    train.main(['--out', str(out), '--steps', '2', '--batch', '2', '--workers', '0',
+                '--val-size', '2', '--val-every', '2', '--precision', 'bfloat16'])
+    meta = torch.load(out, map_location='cpu', weights_only=True)['meta']
+    assert meta['steps'] == 2 and '--precision bfloat16' in meta['command']
+
+
 def test_train_correspondence_runs_checkpoints_and_resumes(body, tmp_path):
     """The training command end to end on a tiny budget: weights, JSON log, validation
     PNG and checkpoint are written; --resume continues from the checkpoint's step; the
