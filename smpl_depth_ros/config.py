@@ -263,6 +263,8 @@ MIN_BODY_PIXELS = 60  # network-foreground crop pixels needed to attempt a fit
 MIN_BODY_SHARE = 0.4  # a person: the network sees a body in this share of its blob's pixels
 MIN_PART_SHARE = 0.02  # body_score: a part counts when it covers this share of the body
 MIN_BEHIND = 0.3  # a blob behind a person is a tracked one with this share of its pixels
+MIN_ENCLOSED = 0.1  # ... or not skipped: the found persons' pixels enclose less of it
+                   # (net.preprocess.enclosed_share)
 MAX_SEE_THROUGH = 0.3  # a person's fit: at most this share of its visible side seen through
                        # (fit.freespace.see_through_share; persons <= 0.26, boxes 0.25-0.9)
 MIN_COLD_SCORE = 2.0  # a new person (no track yet): at least this body_score (persons

@@ -17,7 +17,7 @@ import torch
 
 from smpl_depth_ros.body import load_body_model
 from smpl_depth_ros.config import (EXTRA_CANDIDATES, GIVE_UP, HELD_BODY_GAIN, MAX_CLAIMED,
-                                   MAX_SEE_THROUGH, MIN_BEHIND, MIN_BODY_PIXELS,
+                                   MAX_SEE_THROUGH, MIN_BEHIND, MIN_BODY_PIXELS, MIN_ENCLOSED,
                                    MIN_BODY_SHARE, MIN_COLD_SCORE, MIN_PART_SHARE,
                                    NEAREST_CANDIDATES, NOT_PERSON_FRAMES, NOT_PERSON_IOU,
                                    SECOND_LOOK_CANDIDATES, SECOND_LOOK_EVERY,
@@ -25,8 +25,8 @@ from smpl_depth_ros.config import (EXTRA_CANDIDATES, GIVE_UP, HELD_BODY_GAIN, MA
 from smpl_depth_ros.fit import Fitter, backproject  # noqa: F401  (re-exported)
 from smpl_depth_ros.fit.freespace import FreeSpace, see_through_share, supporting_planes
 from smpl_depth_ros.net.infer import CorrespondenceNet, broad_weights
-from smpl_depth_ros.net.preprocess import (crop_depth, find_persons, network_input,
-                                           pixel_points, split_side_by_side)
+from smpl_depth_ros.net.preprocess import (crop_depth, enclosed_share, find_persons,
+                                           network_input, pixel_points, split_side_by_side)
 from smpl_depth_ros.rectify import Lens, Rectifier
 from smpl_depth_ros.refine import (SurfaceParts, facing_camera, near_surface_pixels, rigid_icp,
                                    refine_correspondences)
@@ -168,6 +168,13 @@ def by_overlap(crops, masks) -> list:
     order = np.argsort([-max((c.mask & m).sum() for m in masks) for c in crops],
                        kind='stable')
     return [crops[i] for i in order]
+
+
+def _enclosed(crop, persons: list[PersonResult], gap_m: float = 0.3) -> float:
+    """The largest share of a candidate's blob that the pixels of a person found at least
+    `gap_m` nearer enclose (`net.preprocess.enclosed_share`)."""
+    return max([enclosed_share(crop.mask, p.mask) for p in persons
+                if p.crop.median_depth <= crop.median_depth - gap_m], default=0.0)
 
 
 def body_pixels(x: np.ndarray, labels: np.ndarray) -> np.ndarray:
@@ -673,11 +680,14 @@ class Reconstructor:
                 break
             tr = track_of.get(id(crop))
             if crop.behind and persons and (tr is None or tr.mask is None or
-                                            crop.mask.sum() < MIN_BEHIND * tr.mask.sum()):
+                                            crop.mask.sum() < MIN_BEHIND * tr.mask.sum()) \
+                    and _enclosed(crop, persons) >= MIN_ENCLOSED:
                 # Seen through a gap of a nearer candidate that is a person: the background
                 # between its legs, or a part of someone it hides; fitted alone, a crouching
                 # body would be made up for it. Unless it is a tracked person, most of
-                # whom is still in view: someone walking behind another.
+                # whom is still in view: someone walking behind another; or the found
+                # persons' pixels do not enclose it (a person beside a nearer one, in the
+                # box of their blob: it goes on to the tests of a new person).
                 if i == len(x):  # no network pass for it
                     x.append(None)
                     lab.append(None)

@@ -250,6 +250,30 @@ def test_background_seen_between_the_legs_is_ranked_last():
     assert cands[1].behind and abs(cands[1].median_depth - 4.0) < 0.05
 
 
+def test_enclosed_share_tells_a_gap_from_a_person_beside():
+    """The wall seen between a person's legs is enclosed by the person's pixels, row by
+    row; a person standing beside a nearer one whose blob a floor strip widens (so that
+    the blob's box holds them, as stereo noise makes it) is not."""
+    from smpl_depth_ros.net.preprocess import enclosed_share
+    near = np.zeros((480, 640), bool)
+    near[0:300, 250:390] = True
+    gap = np.zeros_like(near)
+    gap[180:300, 300:340] = True
+    near &= ~gap
+    assert enclosed_share(gap, near) == 1.0
+    near[300:340, 250:600] = True      # a floor strip joined to the near person
+    beside = np.zeros_like(near)
+    beside[100:300, 450:520] = True    # a farther person standing above that strip
+    assert enclosed_share(beside, near) == 0.0
+    half = np.zeros_like(near)
+    half[150:250, 100:200] = True      # half of its rows have the near blob on both sides
+    other = np.zeros_like(near)
+    other[150:200, 50:250] = True
+    other[150:200, 100:200] = False
+    assert enclosed_share(half, other) == 0.5
+    assert enclosed_share(np.zeros_like(near), near) == 0.0
+
+
 def test_person_cut_in_two_by_an_arm_is_one_candidate():
     """An arm held across the body (nearer by 0.4 m) cuts a person bent forward into an
     upper and a lower half of similar size: they are one candidate. Two people side by

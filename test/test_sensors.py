@@ -522,3 +522,24 @@ def test_a_person_merged_into_a_blob_too_big_for_one_is_found_by_the_second_look
                           axis=2)  # (found, true) pelvis distances
     assert sorted(gaps.argmin(1)) == [0, 1, 2]
     assert gaps.min(1).max() < 0.3
+
+
+def test_a_person_beside_a_nearer_one_inside_their_blobs_box_is_reconstructed():
+    """test/data/beside_near_person_oak_d.npz: a person at 3.2 m stands beside and behind
+    one at 2.2 m whom the OAK-D's noise joins to a floor and wall piece; the box of that
+    blob holds the farther person, who was flagged as seen through a gap of it and
+    skipped. The near person's pixels do not enclose them (`enclosed_share` 0), so they
+    are fitted like any new person, and all three people are reconstructed."""
+    from smpl_depth_ros.config import PipelineConfig
+    from smpl_depth_ros.net.preprocess import enclosed_share
+    from smpl_depth_ros.pipeline import Reconstructor
+    f = np.load('test/data/beside_near_person_oak_d.npz')
+    depth, K, who = f['depth_mm'] / 1000.0, f['K'], f['person_index']
+    persons = Reconstructor(PipelineConfig(tracking=False, device='cpu', max_persons=3)
+                            ).process(depth, K).persons
+    gaps = np.linalg.norm(f['pelvis'][None] - np.array([p.joints[0] for p in persons])[:, None],
+                          axis=2)  # (found, true) pelvis distances
+    assert sorted(gaps.argmin(1)) == [0, 1, 2]
+    assert gaps.min(1).max() < 0.3
+    near = persons[int(np.argmin(gaps[:, 2]))]
+    assert enclosed_share(who == 0, near.mask) < 0.1

@@ -417,6 +417,24 @@ def _label_medians(values: np.ndarray, labels: np.ndarray, sizes: np.ndarray) ->
     return medians
 
 
+def enclosed_share(inner: np.ndarray, outer: np.ndarray) -> float:
+    """The share of the pixels of mask `inner` in image rows where mask `outer` has pixels
+    both left and right of all of inner's: a blob seen through a gap of a nearer one (the
+    wall between a person's legs or between an arm and the torso) is enclosed, a person
+    standing beside a nearer one, partly overlapping their outline, is not."""
+    rows = np.flatnonzero(inner.any(1))
+    if not len(rows):
+        return 0.0
+    a, b = inner[rows], outer[rows]
+    w = a.shape[1]
+    a_first, a_last = a.argmax(1), w - 1 - a[:, ::-1].argmax(1)
+    has = b.any(1)
+    b_first, b_last = b.argmax(1), w - 1 - b[:, ::-1].argmax(1)
+    inside = has & (b_first < a_first) & (b_last > a_last)
+    n = a.sum(1)
+    return float(n[inside].sum() / max(int(n.sum()), 1))
+
+
 def _mark_behind(crops: list[Crop], margin: float = 0.05, gap_m: float = 0.3) -> None:
     """Flag candidates whose blob box lies inside a nearer candidate's box (grown by
     `margin` of its size) and `gap_m` or more behind it: the wall or floor seen between a
