@@ -469,6 +469,16 @@ def test_a_person_touching_a_box_is_found_not_a_scene_piece():
     assert np.linalg.norm(persons[0].vertices - f['vertices'], axis=1).mean() < 0.05
 
 
+def _every_person_reconstructed(f, persons) -> np.ndarray:
+    """Assert that each true person of a stored frame (its `pelvis`, one row each) was
+    reconstructed once, pelvis within 0.3 m; the (found, true) pelvis distances."""
+    gaps = np.linalg.norm(f['pelvis'][None] - np.array([p.joints[0] for p in persons])[:, None],
+                          axis=2)
+    assert sorted(gaps.argmin(1)) == list(range(len(f['pelvis'])))
+    assert gaps.min(1).max() < 0.3
+    return gaps
+
+
 def test_a_near_person_at_the_side_is_a_candidate_beside_far_wall_pieces():
     """test/data/three_people_d435.npz: three people (1.8, 3.0 and 4.4 m) before a back
     wall about 6 m away that the D435's noise breaks into a dozen person-sized pieces,
@@ -490,11 +500,7 @@ def test_a_near_person_at_the_side_is_a_candidate_beside_far_wall_pieces():
                 if (c.mask & (who == k)).sum() > 0.5 * (who == k).sum()}
     assert people_in_candidates(NEAREST_CANDIDATES) == {0, 1, 2}
     assert 2 not in people_in_candidates(0)
-    persons = Reconstructor(cfg).process(depth, K).persons
-    gaps = np.linalg.norm(f['pelvis'][None] - np.array([p.joints[0] for p in persons])[:, None],
-                          axis=2)  # (found, true) pelvis distances
-    assert sorted(gaps.argmin(1)) == [0, 1, 2]
-    assert gaps.min(1).max() < 0.3
+    _every_person_reconstructed(f, Reconstructor(cfg).process(depth, K).persons)
 
 
 def test_a_person_merged_into_a_blob_too_big_for_one_is_found_by_the_second_look():
@@ -517,11 +523,7 @@ def test_a_person_merged_into_a_blob_too_big_for_one_is_found_by_the_second_look
     near = who == 2
     assert report['too_big'] >= 1
     assert not any((c.mask & near).sum() > 0.5 * near.sum() for c in crops)
-    persons = Reconstructor(cfg).process(depth, K).persons
-    gaps = np.linalg.norm(f['pelvis'][None] - np.array([p.joints[0] for p in persons])[:, None],
-                          axis=2)  # (found, true) pelvis distances
-    assert sorted(gaps.argmin(1)) == [0, 1, 2]
-    assert gaps.min(1).max() < 0.3
+    _every_person_reconstructed(f, Reconstructor(cfg).process(depth, K).persons)
 
 
 def test_a_person_beside_a_nearer_one_inside_their_blobs_box_is_reconstructed():
@@ -537,9 +539,6 @@ def test_a_person_beside_a_nearer_one_inside_their_blobs_box_is_reconstructed():
     depth, K, who = f['depth_mm'] / 1000.0, f['K'], f['person_index']
     persons = Reconstructor(PipelineConfig(tracking=False, device='cpu', max_persons=3)
                             ).process(depth, K).persons
-    gaps = np.linalg.norm(f['pelvis'][None] - np.array([p.joints[0] for p in persons])[:, None],
-                          axis=2)  # (found, true) pelvis distances
-    assert sorted(gaps.argmin(1)) == [0, 1, 2]
-    assert gaps.min(1).max() < 0.3
+    gaps = _every_person_reconstructed(f, persons)
     near = persons[int(np.argmin(gaps[:, 2]))]
     assert enclosed_share(who == 0, near.mask) < 0.1
