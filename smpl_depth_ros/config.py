@@ -255,15 +255,15 @@ LM_FREEZE = 1e3  # Hessian diagonal that holds an unsupported joint (data terms 
 EXTRA_CANDIDATES = 2  # candidates looked for beyond max_persons (some may be no person)
 SECOND_LOOK_CANDIDATES = 6  # ... and when none of those was a person (pipeline.process)
 NEAREST_CANDIDATES = 2  # ... and, beyond those (the most central), the nearest of the others
-SECOND_LOOK_EVERY = 10  # fewer persons found than wanted and a blob too big for one left
-                        # whole: the second look peels it when a person tracked in the
-                        # frame before is missing, and on the first frame and every
+SECOND_LOOK_EVERY = 10  # fewer persons found than wanted and a large blob left whole as
+                        # not person-sized: the second look peels it when a person tracked
+                        # in the frame before is missing, and on the first frame and every
                         # this-many-th after
 MIN_BODY_PIXELS = 60  # network-foreground crop pixels needed to attempt a fit
 MIN_BODY_SHARE = 0.4  # a person: the network sees a body in this share of its blob's pixels
 MIN_PART_SHARE = 0.02  # body_score: a part counts when it covers this share of the body
 MIN_BEHIND = 0.3  # a blob behind a person is a tracked one with this share of its pixels
-MIN_ENCLOSED = 0.1  # ... or not skipped: the found persons' pixels enclose less of it
+MIN_ENCLOSED = 0.1  # ... or not skipped: a found person's pixels enclose less of it
                    # (net.preprocess.enclosed_share)
 MAX_SEE_THROUGH = 0.3  # a person's fit: at most this share of its visible side seen through
                        # (fit.freespace.see_through_share; persons <= 0.26, boxes 0.25-0.9)

@@ -70,7 +70,7 @@ class Detection:
         ahead_ms: time those passes and lookups took (counted as the network's).
         rectifier: the lens's maps when the frame was resampled from a lens's own image
             (`undistort`; `depth` and `K` are then the pinhole image's), else None.
-        too_big: blobs person finding left whole, too big for one person (a person
+        too_big: large blobs person finding left whole as not person-sized (a person
             may be merged into one: `reconstruct`'s second look peels them).
     """
 

@@ -627,9 +627,9 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
             (`fill_small_holes`).
         nearest: beyond the max_persons most central candidates, this many of the
             others, the nearest (step 5).
-        report: when given, set report['too_big'] to the number of blobs too big for
-            one person that were left unpeeled (a person may be merged into one: a
-            second look with `peel` would look inside them).
+        report: when given, set report['too_big'] to the number of large blobs (at
+            least 4 x min_pixels) left whole as not person-sized (a person may be merged
+            into one: a second look with `peel` would look inside them).
 
     Returns:
         Crops (with `mask`, and `exclude` where a neighbour is big enough), at most
@@ -638,6 +638,8 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
     H, W = depth.shape
     s = max(1, round(W / DETECT_WIDTH))
     depth = np.nan_to_num(depth, nan=0.0)
+    if report is not None:
+        report['too_big'] = 0
     if noise is not None:
         dz = depth[::s, ::s]
         dz = dz[dz > 0]

@@ -188,7 +188,7 @@ def main(argv=None):
     ap.add_argument('--workers', type=int, default=max(1, (os.cpu_count() or 2) - 1))
     ap.add_argument('--device', default='auto', choices=['auto', 'cpu', 'cuda'])
     ap.add_argument('--precision', default='float32', choices=['float32', 'bfloat16'],
-                    help='bfloat16: forward pass and loss under autocast (weights, '
+                    help='bfloat16: the forward pass under autocast (loss, weights, '
                          'optimiser and validation in float32); about twice as fast on a '
                          'CPU with bfloat16 matrix units')
     ap.add_argument('--seed', type=int, default=7)
@@ -213,6 +213,9 @@ def main(argv=None):
 
     device = torch.device('cuda' if args.device == 'auto' and torch.cuda.is_available()
                           else ('cpu' if args.device == 'auto' else args.device))
+    if (args.precision == 'bfloat16' and device.type == 'cuda'
+            and not torch.cuda.is_bf16_supported()):
+        ap.error('--precision bfloat16: this GPU has no bfloat16; use float32')
     torch.manual_seed(args.seed)
     init_sd = None
     if args.init:
