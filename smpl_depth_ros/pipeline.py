@@ -25,8 +25,9 @@ from smpl_depth_ros.config import (EXTRA_CANDIDATES, GIVE_UP, HELD_BODY_GAIN, MA
 from smpl_depth_ros.fit import Fitter, backproject  # noqa: F401  (re-exported)
 from smpl_depth_ros.fit.freespace import FreeSpace, see_through_share, supporting_planes
 from smpl_depth_ros.net.infer import CorrespondenceNet, broad_weights
-from smpl_depth_ros.net.preprocess import (crop_depth, enclosed_share, find_persons,
-                                           network_input, pixel_points, split_side_by_side)
+from smpl_depth_ros.net.preprocess import (BEHIND_GAP_M, crop_depth, enclosed_share,
+                                           find_persons, network_input, pixel_points,
+                                           split_side_by_side)
 from smpl_depth_ros.rectify import Lens, Rectifier
 from smpl_depth_ros.refine import (SurfaceParts, facing_camera, near_surface_pixels, rigid_icp,
                                    refine_correspondences)
@@ -170,7 +171,7 @@ def by_overlap(crops, masks) -> list:
     return [crops[i] for i in order]
 
 
-def _enclosed(crop, persons: list[PersonResult], gap_m: float = 0.3) -> float:
+def _enclosed(crop, persons: list[PersonResult], gap_m: float = BEHIND_GAP_M) -> float:
     """The largest share of a candidate's blob that the pixels of a person found at least
     `gap_m` nearer enclose (`net.preprocess.enclosed_share`)."""
     return max([enclosed_share(crop.mask, p.mask) for p in persons
@@ -685,9 +686,9 @@ class Reconstructor:
                 # Seen through a gap of a nearer candidate that is a person: the background
                 # between its legs, or a part of someone it hides; fitted alone, a crouching
                 # body would be made up for it. Unless it is a tracked person, most of
-                # whom is still in view: someone walking behind another; or the found
-                # persons' pixels do not enclose it (a person beside a nearer one, in the
-                # box of their blob: it goes on to the tests of a new person).
+                # whom is still in view: someone walking behind another; or no found
+                # person's pixels enclose it (a person beside a nearer one, in the box of
+                # their blob: it goes on to the tests of a new person).
                 if i == len(x):  # no network pass for it
                     x.append(None)
                     lab.append(None)

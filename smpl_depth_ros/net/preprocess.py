@@ -435,7 +435,11 @@ def enclosed_share(inner: np.ndarray, outer: np.ndarray) -> float:
     return float(n[inside].sum() / max(int(n.sum()), 1))
 
 
-def _mark_behind(crops: list[Crop], margin: float = 0.05, gap_m: float = 0.3) -> None:
+BEHIND_GAP_M = 0.3  # a blob seen through a gap of a nearer one lies this far or more behind
+
+
+def _mark_behind(crops: list[Crop], margin: float = 0.05, gap_m: float = BEHIND_GAP_M
+                 ) -> None:
     """Flag candidates whose blob box lies inside a nearer candidate's box (grown by
     `margin` of its size) and `gap_m` or more behind it: the wall or floor seen between a
     person's legs, or between an arm and the torso, is a blob of its own, sometimes of a
