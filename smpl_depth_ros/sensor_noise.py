@@ -10,8 +10,7 @@ gives sigma(z), the expected axial noise (1 sigma, metres) at depth z, from one 
   stream's own focal length (a stereo camera's error grows as its resolution drops);
 * 'auto': estimated from the frames themselves (`estimate_noise`): planes fitted to
   small patches of the image (walls, floor, the body), the patches' residual scatter per
-  0.5 m depth bin, corrected for the share of spatially correlated noise the patches'
-  planes take up (`correlation_correction`), averaged over frames (`AutoNoise`);
+  0.5 m depth bin, averaged over frames (`AutoNoise`);
 * 'none': the fixed defaults (sigma = 0).
 
 The defaults were tuned on a Kinect v1, so what widens the thresholds is the *excess*
@@ -32,8 +31,6 @@ MIN_FRAME_PATCHES = 3  # ... and in one frame
 EXCESS_OVER = 1.25   # noise up to this multiple of a Kinect v1's leaves the defaults
 PATCH_QUANTILE = 0.3  # a bin's sigma: this quantile of its patches' scatter (curved and
                       # edge patches scatter more than the noise, never less)
-MAX_CORRECTION = 1.4  # the largest correlation_correction applied (wider patches hold
-                      # more of the scene's own shape too)
 
 
 def kinect_v1_sigma(z) -> np.ndarray:
@@ -103,22 +100,17 @@ def preset_noise(name: str, K: np.ndarray | None = None) -> NoiseModel:
 
 @dataclass
 class NoiseEstimate:
-    """One frame's measurement: per depth bin centre, the noise (the patches' scatter, not
-    yet corrected) and the patch count; the correlation ratio: the scatter of
-    full-resolution patches over that of patches as many pixels across on the decimated
-    image (1 for per-pixel noise; block-matching stereo noise, correlated over a few
-    pixels, is partly absorbed by the small patches' planes and scatters less there);
-    and the wide ratio: the scatter of patches twice as wide (the image decimated twice
-    as much) over that of the patches measuring the noise (1 for per-pixel noise, above
-    1 for correlated noise: see `correlation_correction`)."""
+    """One frame's measurement: per depth bin centre, the noise and the patch count, and
+    the correlation ratio: the scatter of full-resolution patches over that of patches
+    as many pixels across on the decimated image (1 for per-pixel noise; block-matching
+    stereo noise, correlated over a few pixels, is partly absorbed by the small patches'
+    planes and scatters less there)."""
 
     z: np.ndarray
     sigma: np.ndarray
     count: np.ndarray
     corr_ratio: float
     corr_count: int
-    wide_ratio: float = 1.0
-    wide_count: int = 0
 
 
 _V, _U = np.mgrid[0:PATCH, 0:PATCH]
@@ -181,31 +173,7 @@ def estimate_noise(depth: np.ndarray, step: int | None = None) -> NoiseEstimate:
     cnt = np.array([coarse[k][1] for k in ks], int)
     both = [k for k in ks if k in fine and coarse[k][0] > 1e-4]
     corr = float(np.median([fine[k][0] / coarse[k][0] for k in both])) if both else 1.0
-    wide = _patch_bins(d[::2 * s, ::2 * s], 1)
-    wb = [k for k in ks if k in wide and coarse[k][0] > 1e-4]
-    wr = float(np.median([wide[k][0] / coarse[k][0] for k in wb])) if wb else 1.0
-    return NoiseEstimate(z, sg, cnt, corr, int(sum(fine[k][1] for k in both)), wr,
-                         int(sum(wide[k][1] for k in wb)))
-
-
-def correlation_correction(wide_ratio: float) -> float:
-    """The factor from the patches' scatter to the noise's sigma, given the wide ratio
-    (`NoiseEstimate.wide_ratio`).
-
-    A plane fitted to a patch takes up the part of a spatially correlated noise that is
-    smooth over the patch, so the patches' scatter reads low; the variance they miss
-    falls off as 1 / (patch width)^2 once the patch is a few correlation lengths wide
-    (the patch mean and slope of a field correlated over l pixels vary by ~(l / L)^2 of
-    its variance over L pixels). From the variances at widths L and 2L, Richardson's
-    extrapolation to an infinite patch: sigma^2 = (4 v(2L) - v(L)) / 3, i.e. a factor
-    sqrt((4 r^2 - 1) / 3) on the scatter at L for a wide ratio r. Per-pixel noise gives
-    r = 1 and no correction; the factor is kept within [1, MAX_CORRECTION] (curved
-    patches scatter more when wider too). No noise model is assumed beyond a correlation
-    length short against the patches (synthetic block-matching stereo, correlated over
-    3-3.5 sensor pixels: the 30 % the patches miss is brought to within ~10 %).
-    """
-    return float(np.sqrt(np.clip((4.0 * wide_ratio ** 2 - 1.0) / 3.0, 1.0,
-                                 MAX_CORRECTION ** 2)))
+    return NoiseEstimate(z, sg, cnt, corr, int(sum(fine[k][1] for k in both)))
 
 
 def classify(sigma_at_z: np.ndarray, z: np.ndarray, corr_ratio: float) -> str:
@@ -231,19 +199,14 @@ class AutoNoise:
 
     Per depth bin, a running mean of the frames' measurements weighted by their patch
     counts (at most `memory` frames' worth: a changed scene or camera settles within a
-    few seconds); the correlation and wide ratios likewise. A sensor classified as stereo
-    has its sigma corrected by the wide ratio's `correlation_correction` (block matching
-    correlates its noise over a few pixels; the others' scatter is taken as it is: on
-    the real Kinect v1 frame the wide patches' extra scatter is mostly the scene's
-    shape and the disparity steps, and the defaults were tuned on that sensor). Bins
-    never measured follow the nearest measured ones as z^2 (NoiseModel's extrapolation).
+    few seconds); the correlation ratio likewise. Bins never measured follow the nearest
+    measured ones as z^2 (NoiseModel's extrapolation).
     """
 
     def __init__(self, memory: int = 30):
         self.memory = memory
         self._sum: dict[int, list[float]] = {}  # bin -> [sum sigma * w, sum w]
         self._corr = [0.0, 0.0]
-        self._wide = [0.0, 0.0]
         self.frames = 0
         self._model: NoiseModel | None = None  # the estimate, until the next update
 
@@ -262,8 +225,6 @@ class AutoNoise:
             acc[1] += c
         self._corr[0] = self._corr[0] * decay + e.corr_ratio * e.corr_count
         self._corr[1] = self._corr[1] * decay + e.corr_count
-        self._wide[0] = self._wide[0] * decay + e.wide_ratio * e.wide_count
-        self._wide[1] = self._wide[1] * decay + e.wide_count
 
     def model(self) -> NoiseModel:
         if self._model is None:
@@ -275,14 +236,10 @@ class AutoNoise:
         if not ks:
             return NoiseModel(source='estimated')
         z = np.array([(k + 0.5) * BIN_M for k in ks])
-        wide = self._wide[0] / self._wide[1] if self._wide[1] > 0 else 1.0
         sg = np.array([self._sum[k][0] / self._sum[k][1] for k in ks])
         corr = self._corr[0] / self._corr[1] if self._corr[1] > 0 else 1.0
-        kind = classify(sg, z, corr)  # (its thresholds are on the patches' scatter)
-        if kind == 'stereo':
-            sg = sg * correlation_correction(wide)
-        return NoiseModel(tuple(float(v) for v in z), tuple(float(v) for v in sg), kind,
-                          'estimated')
+        return NoiseModel(tuple(float(v) for v in z), tuple(float(v) for v in sg),
+                          classify(sg, z, corr), 'estimated')
 
 
 def sensor_choices() -> tuple[str, ...]:
