@@ -135,9 +135,9 @@ class PipelineConfig:
     depth_max: float = param(6.0, 'person search range: farthest depth (m)',
                              range=(0.0, 100.0))
     net_precision: str = param('auto', "the network's arithmetic: 'auto' (bfloat16 on a CPU "
-                               'with bfloat16 units, AMX: about twice as fast, 99.8 % of '
-                               "the labels the same; float32 elsewhere), 'float32' or "
-                               "'bfloat16'", choices=PRECISIONS)
+                               'with bfloat16 units, AMX or AVX-512 BF16: 1.6-2x as fast, '
+                               "99.8 % of the labels the same; float32 elsewhere), 'float32' "
+                               "or 'bfloat16'", choices=PRECISIONS)
     flip_tta: bool = param(False, 'run the network on each crop and its mirror image and '
                            'average (twice the network time; better segmentation and fits)')
     second_network: bool = param(True, 'when a body was seen but no fit explained it, retry '

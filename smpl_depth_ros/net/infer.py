@@ -17,14 +17,18 @@ def default_weights(backend: str, kind: str = 'double') -> str:
 
 
 def bfloat16_units() -> bool:
-    """Whether this CPU multiplies bfloat16 in hardware (AMX tiles: Intel Xeon of 2023
-    on), where the network runs about twice as fast in it; elsewhere bfloat16 is
-    emulated and slower than float32."""
-    probe = getattr(torch.cpu, '_is_amx_tile_supported', None)
-    try:
-        return bool(probe is not None and probe())
-    except Exception:  # noqa: BLE001 - an unknown CPU: float32
-        return False
+    """Whether this CPU multiplies bfloat16 in hardware: AMX tiles (Intel Xeon of 2023
+    on: the network about twice as fast in bfloat16) or AVX-512 BF16 dot products (AMD
+    Zen 4 on, Intel Cooper Lake: about 1.6 times); elsewhere bfloat16 is emulated and
+    slower than float32."""
+    for name in ('_is_amx_tile_supported', '_is_avx512_bf16_supported'):
+        probe = getattr(torch.cpu, name, None)
+        try:
+            if probe is not None and probe():
+                return True
+        except Exception:  # noqa: BLE001 - an unknown CPU: float32
+            pass
+    return False
 
 
 def resolve_precision(precision: str, device: torch.device) -> torch.dtype:
