@@ -472,17 +472,76 @@ def test_a_strip_of_floor_is_floor_on_the_second_look_only():
     assert not _scene_sized(narrow, up, 1.0, FLOOR_STRIP_M)
 
 
+def _ray_cast(K, shape, surfaces):
+    """A depth image of `surfaces`: each a function (ray directions (N, 3), z = 1) -> the
+    depth at which each ray meets it (inf where it does not); the nearest wins."""
+    H, W = shape
+    rr, cc = np.mgrid[0:H, 0:W]
+    rays = np.stack([(cc - K[0, 2]) / K[0, 0], (rr - K[1, 2]) / K[1, 1], np.ones((H, W))], -1)
+    rays = rays.reshape(-1, 3)
+    z = np.min([f(rays) for f in surfaces], axis=0)
+    return np.where(np.isfinite(z), z, 0.0).reshape(H, W), rays.reshape(H, W, 3)
+
+
+def _rect_at(z0, x, y):
+    """A frontal rectangle at depth z0 over x = (lo, hi), y = (lo, hi)."""
+    def hit(d):
+        px, py = d[:, 0] * z0, d[:, 1] * z0
+        return np.where((px >= x[0]) & (px <= x[1]) & (py >= y[0]) & (py <= y[1]), z0,
+                        np.inf)
+    return hit
+
+
+def test_a_plane_is_measured_on_the_cells_the_camera_sees():
+    """With the depth image given, a plane's empty cells hidden behind nearer surfaces or
+    outside the image do not count against it: a floor strip half hidden by people
+    standing on it is scene-sized. A horizontal slice through people, the wall seen
+    through the gaps between them, is not."""
+    from smpl_depth_ros.net.preprocess import FLOOR_STRIP_M, _scene_sized
+    K = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]])
+    up = np.array([0.0, -1.0, 0.0])
+
+    def floor(d):  # y = 0.9 m below the camera, up to the wall at 2.5 m
+        z = np.where(d[:, 1] > 1e-6, 0.9 / np.maximum(d[:, 1], 1e-6), np.inf)
+        return np.where(z <= 2.5, z, np.inf)
+
+    def wall(z0):
+        return lambda d: np.full(len(d), z0)
+
+    # A floor strip 0.7 m deep, 2 m wide, with people at 1.6 m hiding its middle.
+    depth, rays = _ray_cast(K, (480, 640), [floor, wall(2.5), _rect_at(1.6, (-0.6, 0.6),
+                                                                         (0.0, 0.9))])
+    on = np.abs(rays[..., 1] * depth - 0.9) < 0.01
+    q = (rays * depth[..., None])[on & (depth > 0)]
+    q = q[np.abs(q[:, 0]) <= 1.0]
+    assert not _scene_sized(q, up, 1.0, FLOOR_STRIP_M)
+    assert _scene_sized(q, up, 1.0, FLOOR_STRIP_M, view=(depth, K, 1))
+    # Three people at 2.0, 2.6 and 3.2 m, a wall at 4 m, sliced 0.3 m below the camera.
+    people = [_rect_at(z0, (x - 0.15, x + 0.15), (-0.8, 0.9))
+              for z0, x in ((2.0, -1.0), (2.6, 0.0), (3.2, 1.0))]
+    depth, rays = _ray_cast(K, (480, 640), [wall(4.0), *people])
+    pts = rays * depth[..., None]
+    q = pts[(np.abs(pts[..., 1] - 0.3) < 0.01) & (depth < 3.5)]
+    assert not _scene_sized(q, up, 1.0, view=(depth, K, 1))
+
+
 def test_stored_person_near_a_wall_on_a_strip_of_floor_is_found():
     """test/data/near_wall_kinect_v1.npz: a person bending forward 1.7 m from a Kinect
     v1, a wall 0.7 m behind, the floor between seen only 0.76 m deep: floor, person and
     wall are one blob. The second look peels the wall and, by the strip rule, the floor;
-    the person is found and fitted."""
+    the person is found, whatever the plane search's random stream and however the
+    16UC1 frame is decoded (the node's float32 or float64), and fitted."""
     from smpl_depth_ros.config import PipelineConfig
+    from smpl_depth_ros.depth_codec import bytes_to_depth, depth_mm_to_bytes
     from smpl_depth_ros.pipeline import Reconstructor
     f = np.load('test/data/near_wall_kinect_v1.npz')
+    H, W = f['depth_mm'].shape
+    node = bytes_to_depth(depth_mm_to_bytes(f['depth_mm'])[0], W, H, '16UC1')
     depth = f['depth_mm'] / 1000.0
-    crops = find_persons(depth, f['K'], 0.5, 6.0, 400, max_persons=3)
-    assert crops and 1.5 < crops[0].median_depth < 2.1
+    for decoded in (node, depth):
+        for seed in range(8):
+            crops = find_persons(decoded, f['K'], 0.5, 6.0, 400, max_persons=3, seed=seed)
+            assert crops and 1.5 < crops[0].median_depth < 2.1, seed
     p = Reconstructor(PipelineConfig(tracking=False, device='cpu')).process(
         depth, f['K']).persons[0]
     assert np.linalg.norm(p.vertices - f['vertices'], axis=1).mean() < 0.04

@@ -48,6 +48,8 @@ GROW_DEPTH = 0.8    # ... at most this far from the person's median depth (metre
 FLOOR_UP = 0.75     # a floor-like plane's normal: |its image-vertical component| above this
 ALONE_SHARE = 0.6  # a component this big a share of its merged group is also tried alone
 FLOOR_STRIP_M = (0.5, 1.8)  # second look: a floor-like plane this deep and wide (m) is floor
+CELL_M = 0.1       # a plane's occupancy is counted on cells this wide (m)
+OCCLUDER_M = 0.1   # ... an empty cell this far behind the surface seen there is hidden
 
 
 @dataclass
@@ -194,14 +196,19 @@ def pixel_points(rows, cols, z, K) -> np.ndarray:
 
 
 def _scene_sized(q: np.ndarray, n: np.ndarray, min_extent: float,
-                 strip: tuple[float, float] | None = None) -> bool:
+                 strip: tuple[float, float] | None = None, view=None) -> bool:
     """Whether plane inliers `q` (normal `n`) form a scene-sized plane (floor, wall): both
     in-plane extents > min_extent m (a person's torso is planar-ish too, but never that
     large), and filling that extent: a thin horizontal slice through several people at
     one height is a few short segments, so >= 35 % of its 10 cm cells must be occupied.
     `strip` (short, long): a floor-like plane (normal within ~40 deg of the image's
     vertical) also counts when its extents pass these instead: the strip of floor seen
-    between the camera's view and a wall a metre behind a person."""
+    between the camera's view and a wall a metre behind a person.
+    `view` (depth, K, s): the (decimated) depth image the points come from. Then only the
+    cells the camera could see count: an empty cell outside the image, on an invalid
+    pixel or behind a nearer surface (the person standing on the floor, the legs of a
+    table) is unknown rather than empty; a cell the camera sees through (the wall behind a
+    slice through people) stays empty."""
     e1 = np.cross(n, [1.0, 0, 0] if abs(n[0]) < 0.9 else [0, 1.0, 0])
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(n, e1)
@@ -212,19 +219,47 @@ def _scene_sized(q: np.ndarray, n: np.ndarray, min_extent: float,
         and long_ >= strip[1]
     if short < min_extent and not floor_strip:
         return False
-    cu = ((u - lo_u) / 0.1).astype(np.int64)
-    cv = ((v - lo_v) / 0.1).astype(np.int64)
+    cu = ((u - lo_u) / CELL_M).astype(np.int64)
+    cv = ((v - lo_v) / CELL_M).astype(np.int64)
     ok = (cu >= 0) & (cv >= 0) & (u <= hi_u) & (v <= hi_v)
-    occupied = np.zeros((int((hi_u - lo_u) / 0.1) + 1, int((hi_v - lo_v) / 0.1) + 1), bool)
+    occupied = np.zeros((int((hi_u - lo_u) / CELL_M) + 1, int((hi_v - lo_v) / CELL_M) + 1),
+                        bool)
     occupied[cu[ok], cv[ok]] = True
-    return occupied.sum() >= 0.35 * ((hi_u - lo_u) / 0.1 + 1) * ((hi_v - lo_v) / 0.1 + 1)
+    cells = occupied.size
+    if view is not None:
+        cells -= np.count_nonzero(_unseen_cells(~occupied, float(np.mean(q @ n)), n, e1, e2,
+                                                lo_u, lo_v, view))
+    return occupied.sum() >= 0.35 * cells
+
+
+def _unseen_cells(empty: np.ndarray, offset: float, n, e1, e2, lo_u: float, lo_v: float,
+                  view) -> np.ndarray:
+    """Of a plane's empty 10 cm cells (`empty`, indexed from (lo_u, lo_v) along e1, e2),
+    those the camera cannot see: their centre projects outside the image or onto an
+    invalid pixel, or lies more than OCCLUDER_M behind the surface seen there."""
+    depth, K, s = view
+    i, j = np.nonzero(empty)
+    centre = offset * np.asarray(n) + np.outer(lo_u + (i + 0.5) * CELL_M, e1) + \
+        np.outer(lo_v + (j + 0.5) * CELL_M, e2)
+    z = centre[:, 2]
+    front = z > 1e-3
+    zs = np.where(front, z, 1.0)
+    c = np.rint((K[0, 0] * centre[:, 0] / zs + K[0, 2]) / s).astype(np.int64)
+    r = np.rint((K[1, 1] * centre[:, 1] / zs + K[1, 2]) / s).astype(np.int64)
+    inside = front & (r >= 0) & (c >= 0) & (r < depth.shape[0]) & (c < depth.shape[1])
+    seen = np.zeros(len(z), np.float64)
+    seen[inside] = depth[r[inside], c[inside]]
+    unseen = ~inside | ~(seen > 0) | (seen < z - OCCLUDER_M)
+    out = np.zeros_like(empty)
+    out[i[unseen], j[unseen]] = True
+    return out
 
 
 def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=2,
                    min_fraction=0.03, thresh=0.03, iters=1000, min_extent=1.0,
                    min_up=FLOOR_UP, sample=2000, presample=200, finalists=10,
                    local_k=16, planes: list | None = None, noise=None,
-                   strip: tuple[float, float] | None = None) -> np.ndarray:
+                   strip: tuple[float, float] | None = None, view=None) -> np.ndarray:
     """Boolean mask of points that belong to none of the dominant planes.
 
     RANSAC over `iters` point triples per plane (half of them local: a point and two of
@@ -234,7 +269,7 @@ def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=2,
     removed are appended to `planes` (when given) as (4,) arrays (n, offset), n . x =
     offset, unit n towards the camera (the side the scene is seen from). `noise`: an
     optional excess noise e(z) (sensor_noise.NoiseModel.excess): a point's inlier band
-    is then thresh + 2 e(its depth). `strip`: see `_scene_sized`.
+    is then thresh + 2 e(its depth). `strip`, `view`: see `_scene_sized`.
     """
     keep = np.ones(len(points), bool)
     if noise is not None and len(points):
@@ -291,7 +326,7 @@ def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=2,
         best = top[np.argmax((np.abs(P @ n[top].T - off[top]) < tfin).sum(0))]
         nb_, ob_ = n[best], off[best]
         near = np.abs(points @ nb_ - ob_) < thresh
-        q = points[avail & near]
+        q = points[keep & near]
         if len(q) < min_fraction * n_all:
             break
         # Least squares on the inliers (a sample of them): three points fix a plane
@@ -301,8 +336,8 @@ def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=2,
         if abs(nl[1]) > min_up:
             nb_, ob_ = nl, float(qs.mean(0) @ nl)
             near = np.abs(points @ nb_ - ob_) < thresh
-            q = points[avail & near]
-        if not _scene_sized(q, nb_, min_extent, strip):
+            q = points[keep & near]
+        if not _scene_sized(q, nb_, min_extent, strip, view):
             avail &= ~near  # look past it
             continue
         keep &= ~near
@@ -658,7 +693,7 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
     rng = np.random.default_rng(seed)
     planes: list = []
     keep = _remove_planes(pixel_points(r * s, c * s, d[r, c], K), rng, planes=planes,
-                          noise=noise)
+                          noise=noise, view=(d, K, s))
     fg = np.zeros_like(valid)
     fg[valid] = keep
     edges, jumps = _depth_edges(depth, s, noise)
@@ -679,7 +714,8 @@ def find_persons(depth: np.ndarray, K: np.ndarray, depth_min: float, depth_max: 
                 0.0 if noise is None else 2 * float(noise(z)))
             on_plane = ~_remove_planes(pixel_points(rr * s, cc * s, d[rr, cc], K), rng,
                                        max_planes=3, min_up=-1.0, thresh=thresh,
-                                       planes=planes, strip=FLOOR_STRIP_M)
+                                       planes=planes, strip=FLOOR_STRIP_M,
+                                       view=(d, K, s))
             fg[rr[on_plane], cc[on_plane]] = False
             peeled = np.zeros_like(fg) if peeled is None else peeled
             peeled[rr[on_plane], cc[on_plane]] = True
