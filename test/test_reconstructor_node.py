@@ -97,6 +97,7 @@ class Core:
     def __init__(self, rec, delay: float = 0.0):
         self._rec = rec
         self.delay = delay
+        self.finish_delay = 0.0  # before each frame's labels (a deliberately slow labeller)
         self.calls = 0
         self.resets = 0
         self.busy = False
@@ -135,6 +136,11 @@ class Core:
         finally:
             self.durations.append(time.monotonic() - t0)
             self.busy = False
+
+    def finish(self, result):
+        if self.finish_delay:
+            time.sleep(self.finish_delay)
+        return self._rec.finish(result)
 
     def process(self, depth, K, stamp_ns=None, lens=None):
         return self.reconstruct(self.detect(depth, K, stamp_ns, lens))
@@ -364,6 +370,26 @@ def test_outputs_copy_header_and_match_model(harness, core, scene):
     assert kinds == sorted([Marker.SPHERE_LIST, Marker.LINE_LIST])
     joints = next(mk for mk in skel.markers if mk.type == Marker.SPHERE_LIST)
     assert len(joints.points) == len(body.joint_names)
+
+
+def test_bodies_are_published_before_the_labels_are_made(harness, core, scene):
+    """A frame's meshes, parameters, IDs (and TF) go out as soon as its fits are done; its
+    segmentation and body index follow once the labels are made: with labelling slowed
+    by 0.8 s, the frame's ~/bodies/tracked arrives that much before its ~/bodies/index,
+    and both carry the frame's stamp."""
+    core.finish_delay = 0.8
+    node, tester = harness()
+    stamp = send_until(tester, scene, 'bodies/index', 30.0)
+    arrived = {}
+    with tester.lock:
+        for name in ('bodies/tracked', 'bodies/params', 'meshes', 'bodies/index',
+                     'segmentation'):
+            t = [t for t, m in tester.got[name] if stamp_to_ns(_header(m).stamp) == stamp]
+            assert t, name
+            arrived[name] = t[0]
+    for name in ('bodies/tracked', 'bodies/params', 'meshes'):
+        assert arrived['bodies/index'] - arrived[name] > 0.5, (name, arrived)
+    assert abs(arrived['segmentation'] - arrived['bodies/index']) < 0.3
 
 
 def test_two_people_keep_their_ids_and_a_person_leaving_is_deleted(harness, core, scene):

@@ -42,6 +42,7 @@ TOPICS = {
     'tracked': ('bodies/tracked', 'sensor_msgs/msg/JointState'),
     'tf': ('/tf', TF_T),
 }
+IMAGE_KEYS = ('segmentation', 'labels', 'body_index')  # built from the labels (`finish`)
 
 
 class FrameOutputs:
@@ -83,15 +84,25 @@ class FrameOutputs:
             self._faces = (frac, faces)
         return self._faces[1]
 
-    def build(self, result, persons, header) -> list[tuple[str, object]]:
-        """(key, message or its CDR bytes) for the frame, in TOPICS order."""
+    def build(self, result, persons, header, images: bool = True,
+              bodies: bool = True) -> list[tuple[str, object]]:
+        """(key, message or its CDR bytes) for the frame, in TOPICS order: the `images`
+        (IMAGE_KEYS: they need the finished result's labels and masks) and the `bodies`
+        (every other key: meshes, skeleton, parameters, IDs, TF)."""
         f, o = self.f, self.opts
         out = []
-        if o.publish_segmentation:
+        if images and o.publish_segmentation:
             rgb, ids = A.labels_to_image_msgs(result.labels, header, msgs=f)
             out += [('segmentation', rgb), ('labels', ids),
                     ('body_index', A.body_index_image(persons, result.labels.shape, header,
                                                       msgs=f))]
+        if bodies:
+            out += self._bodies(persons, header)
+        return out
+
+    def _bodies(self, persons, header) -> list[tuple[str, object]]:
+        f, o = self.f, self.opts
+        out = []
         ids = [int(p.track_id) for p in persons]
         gone = sorted(self._last_ids - set(ids))
         self._last_ids = set(ids)

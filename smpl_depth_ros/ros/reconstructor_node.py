@@ -16,8 +16,10 @@ detector takes the newest one, timed to be done when the reconstructor usually i
 runs `Reconstructor.detect` (checks, sensor noise, person candidates) and
 `Reconstructor.look_ahead` (the network passes of the candidates likely to be persons);
 the reconstructor runs `Reconstructor.reconstruct` (the network passes still missing, fits,
-tracks) and hands the result to the publisher, which runs `Reconstructor.finish` (the
-labels from the fitted meshes) and publishes, beside the next frame's fits. Their results
+tracks) and hands the result to the publisher, which publishes the bodies (meshes,
+skeleton, parameters, IDs, TF) at once, then runs `Reconstructor.finish` (the labels from
+the fitted meshes) and publishes the images (segmentation, body index), beside the next
+frame's fits. Their results
 are those of `Reconstructor.process` frame by frame. A changed configuration is applied by
 the detector while the detector and the reconstructor are idle. ROS entities are created
 and destroyed on the main (executor) thread only.
@@ -577,31 +579,50 @@ class ReconstructorNode(Node):
         self._finishing.put((frame, result, rec))
 
     def _finish(self, frame: Frame, result, rec):
+        """Publish the frame's bodies (meshes, skeleton, parameters, IDs, TF: they do not
+        wait for the labels), then label it (`Reconstructor.finish`) and publish its
+        images (segmentation, body index)."""
+        persons = list(result.persons)[:max(1, self._config.max_persons)]
+        if not self._publish(frame, result, persons, bodies=True):
+            return
         try:
             result = rec.finish(result)
         except Exception as e:  # noqa: BLE001 - a bad frame must not kill the node
             self._report(InputError('internal', f'{type(e).__name__}: {e}'), frame.header)
             return
-        try:
-            self._publish_result(result, frame)
-        except Exception as e:  # noqa: BLE001
-            if self._stop.is_set() or not self.context.ok():
-                return
-            self._report(InputError('publish', f'{type(e).__name__}: {e}'), frame.header)
+        self._publish(frame, result, list(result.persons)[:len(persons)], bodies=False)
 
-    def _publish_result(self, result, frame: Frame):
+    def _publish(self, frame: Frame, result, persons: list, bodies: bool) -> bool:
+        try:
+            if bodies:
+                self._publish_bodies(result, persons, frame)
+            else:
+                for key, msg in self._outputs.build(result, persons, frame.header,
+                                                    bodies=False):
+                    self._send(key, msg)
+            return True
+        except Exception as e:  # noqa: BLE001
+            if not (self._stop.is_set() or not self.context.ok()):
+                self._report(InputError('publish', f'{type(e).__name__}: {e}'), frame.header)
+            return False
+
+    def _send(self, key: str, msg) -> bool:
+        pub = self._pubs.get(key)
+        if pub is None:
+            return False
+        pub.publish(msg)  # rclpy publishers take CDR bytes as they are
+        return True
+
+    def _publish_bodies(self, result, persons: list, frame: Frame):
         header = frame.header
-        persons = list(result.persons)[:max(1, self._config.max_persons)]
         if not persons:
             self._report(InputError('no_person', 'no person found between depth_min='
                                     f'{self._config.depth_min} m and depth_max='
                                     f'{self._config.depth_max} m'), header)
         published = False
-        for key, msg in self._outputs.build(result, persons, header):
-            pub = self._pubs.get(key)
-            if pub is not None:
-                pub.publish(msg)  # rclpy publishers take CDR bytes as they are
-                published = True
+        for key, msg in self._outputs.build(result, persons, header, images=False):
+            published |= self._send(key, msg)
+        published |= bool(self._outputs.opts.publish_segmentation)  # (the images follow)
         now_ns = self.get_clock().now().nanoseconds
         with self._lock:
             self._stats['processed'] += 1
