@@ -295,6 +295,30 @@ def test_person_cut_in_two_by_an_arm_is_one_candidate():
         assert cols[-1] - cols[0] < 100  # side by side: not merged
 
 
+def test_a_person_beside_the_edge_of_a_nearer_wall_is_not_a_piece_of_it():
+    """A person 0.2 m beside the edge of a wall 0.2 m nearer, and smaller than it in the
+    image: within the depth gap of a piece of one body, and the two together no wider
+    than a person could be, but too far apart in the image to be one body: the person is
+    a candidate of their own, without the wall. A piece of a body small beside it (a
+    hand) joins it from as far."""
+    K = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]])
+    d = np.zeros((480, 640), np.float32)
+    d[:, :215] = 2.2                 # the wall's edge, 0.9 m of it in view
+    d[60:432, 261:359] = 2.4         # the person: 1.7 m x 0.45 m, 0.2 m beside it
+    cands = find_persons(d, K, 0.5, 6.0, min_pixels=300, max_persons=3)
+    person = [c for c in cands if c.mask[250, 310]]
+    assert person, [(round(c.median_depth, 2), int(c.mask.sum())) for c in cands]
+    assert not person[0].mask[:, :215].any()
+    # A small piece as far off is still the body's: a hand raised out of the image at the
+    # top, its tips back in view 0.15 m above the head.
+    d = np.zeros((480, 640), np.float32)
+    d[40:432, 261:359] = 2.4         # the person
+    d[0:8, 330:356] = 2.35           # their fingertips, the arm above the image
+    (c,) = [c for c in find_persons(d, K, 0.5, 6.0, min_pixels=300, max_persons=3)
+            if c.mask[250, 310]]
+    assert c.mask[4, 340]
+
+
 def test_child_in_front_of_an_adult_stays_two_candidates():
     """One below the other but the lower one nearer (a child 0.4 m in front of an adult):
     two people, not the two halves of one."""

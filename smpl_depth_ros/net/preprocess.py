@@ -47,6 +47,8 @@ GROW_PX = 3         # a person mask reaches this many pixels past its blob ...
 GROW_DEPTH = 0.8    # ... at most this far from the person's median depth (metres)
 FLOOR_UP = 0.75     # a floor-like plane's normal: |its image-vertical component| above this
 ALONE_SHARE = 0.6  # a component this big a share of its merged group is also tried alone
+MERGE_GAP_M = 0.1  # a smaller piece merged into a component, when at least FAR_PIECE_SHARE
+FAR_PIECE_SHARE = 0.15  # of its size, comes this near it (or a piece merged) in the image
 FLOOR_STRIP_M = (0.5, 1.8)  # second look: a floor-like plane this deep and wide (m) is floor
 CELL_M = 0.1       # a plane's occupancy is counted on cells this wide (m)
 OCCLUDER_M = 0.1   # ... an empty cell this far behind the surface seen there is hidden
@@ -562,6 +564,29 @@ def _group_blob(group, lab, slices, d, n, grow, s, K, core=None):
     return blob, rr, cc, zz, r0, r1, c0, c1
 
 
+def _within_reach(box: np.ndarray, k: int, pieces: np.ndarray, reach_px: float,
+                  nearer: np.ndarray) -> np.ndarray:
+    """The labels among `pieces` that component `k` reaches in the label image `box`
+    through gaps of at most `reach_px` pixels, piece by piece, where the pixels of
+    `nearer` things (an occluder in front; not the pieces) count as no gap. A piece of
+    the same body is cut off by a depth jump (the torso's halves beside an arm held
+    across it, the head above arms folded in front of the chest) or a stereo camera's
+    invalid band, a few pixels from the rest; a person standing 0.2 m beside the edge of
+    a nearer wall, the room seen between them, is not a piece of the wall (merged, the
+    whole was person-sized and the person never a candidate)."""
+    kept = np.zeros(len(pieces), bool)
+    inside = (box == k) | nearer
+    while not kept.all():
+        gap = ndimage.minimum(ndimage.distance_transform_edt(~inside), labels=box,
+                              index=pieces)
+        new = (np.asarray(gap) <= reach_px) & ~kept
+        if not new.any():
+            break
+        kept |= new
+        inside |= np.isin(box, pieces[new])
+    return pieces[kept]
+
+
 def _candidates(fg, depth, d, K, s, min_px, max_persons, depth_min, depth_max,
                 alone: bool = False, core=None):
     """Person candidates among the connected components of `fg` (decimated image `d`).
@@ -588,15 +613,24 @@ def _candidates(fg, depth, d, K, s, min_px, max_persons, depth_min, depth_max,
         if used[k]:
             continue
         # Self-occlusion (an arm in front of the torso) cuts a person into several
-        # components: merge the smaller ones inside the (expanded) box at a similar depth.
+        # components: merge the smaller ones inside the (expanded) box at a similar depth;
+        # one big enough to be a body of its own (FAR_PIECE_SHARE) only when it comes
+        # near (`_within_reach`).
         rows, cols = slices[k - 1]
         pad_r, pad_c = (rows.stop - rows.start) // 8 + 2, (cols.stop - cols.start) // 4 + 2
-        box = lab[max(rows.start - pad_r, 0):rows.stop + pad_r,
-                  max(cols.start - pad_c, 0):cols.stop + pad_c]
+        win = np.s_[max(rows.start - pad_r, 0):rows.stop + pad_r,
+                    max(cols.start - pad_c, 0):cols.stop + pad_c]
+        box = lab[win]
         ids = np.flatnonzero(np.bincount(box.ravel(), minlength=n + 1))
         ids = ids[(ids > 0) & (ids != k) & ~used[ids]]
         gap = np.abs(medians[ids] - medians[k])
         small = ids[(sizes[ids] < 0.6 * sizes[k]) & (gap < 0.3)]
+        big = small[sizes[small] >= FAR_PIECE_SHARE * sizes[k]]
+        if len(big):
+            nearer = (box > 0) & (d[win] < medians[k] - OCCLUDER_M) & ~np.isin(box, small)
+            near = _within_reach(box, k, small, MERGE_GAP_M * K[0, 0] /
+                                 (max(float(medians[k]), 0.1) * s), nearer)
+            small = small[~np.isin(small, big) | np.isin(small, near)]
         # An arm across the body cuts a person into an upper and a lower half of similar
         # size: a component as big, stacked above or below this one, is merged too when
         # the whole is still person-sized. Up to 0.5 m apart in depth only when the upper
