@@ -319,6 +319,22 @@ def test_a_person_beside_the_edge_of_a_nearer_wall_is_not_a_piece_of_it():
     assert c.mask[4, 340]
 
 
+def test_a_person_touching_a_nearer_walls_edge_is_a_candidate_on_the_second_look():
+    """A person right at the edge of a wall 0.15 m nearer is one blob with it in the first
+    pass (a piece of a similar depth, touching it, the whole no wider than a person); the
+    second look (`peel`) takes such a piece, big enough to be a body, as a candidate of its
+    own."""
+    K = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]])
+    d = np.zeros((480, 640), np.float32)
+    d[:, :215] = 2.2                 # the wall's edge
+    d[60:432, 217:315] = 2.35        # the person, touching it in the image
+    first = find_persons(d, K, 0.5, 6.0, min_pixels=300, max_persons=3)
+    assert [c for c in first if c.mask[250, 260]][0].mask[250, 100]  # one blob
+    again = find_persons(d, K, 0.5, 6.0, min_pixels=300, max_persons=3, peel=True)
+    person = [c for c in again if c.mask[250, 260]]
+    assert person and not person[0].mask[:, :205].any()  # (grown by GROW_PX at most)
+
+
 def test_child_in_front_of_an_adult_stays_two_candidates():
     """One below the other but the lower one nearer (a child 0.4 m in front of an adult):
     two people, not the two halves of one."""

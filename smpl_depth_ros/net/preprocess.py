@@ -626,7 +626,11 @@ def _candidates(fg, depth, d, K, s, min_px, max_persons, depth_min, depth_max,
         gap = np.abs(medians[ids] - medians[k])
         small = ids[(sizes[ids] < 0.6 * sizes[k]) & (gap < 0.3)]
         big = small[sizes[small] >= FAR_PIECE_SHARE * sizes[k]]
-        if len(big):
+        if len(big) and alone:
+            # The second look: such a piece is a candidate of its own (a person touching
+            # the edge of a nearer wall, merged into it in the first pass, which failed).
+            small = small[~np.isin(small, big)]
+        elif len(big):
             nearer = (box > 0) & (d[win] < medians[k] - OCCLUDER_M) & ~np.isin(box, small)
             near = _within_reach(box, k, small, MERGE_GAP_M * K[0, 0] /
                                  (max(float(medians[k]), 0.1) * s), nearer)
