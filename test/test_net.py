@@ -565,6 +565,25 @@ def test_a_plane_is_measured_on_the_cells_the_camera_sees():
     assert not _scene_sized(q, up, 1.0, view=(depth, K, 1))
 
 
+def test_a_noisy_wall_found_again_takes_no_further_planes_place():
+    """A far wall seen with stereo noise wider than the inlier band: after its plane is
+    removed, the rest of its points make the same plane again, which is removed too but
+    does not use up `max_planes`: the floor is still found."""
+    from smpl_depth_ros.net.preprocess import _remove_planes
+    rng = np.random.default_rng(1)
+    n = 20000
+    for sd in (0.05, 0.08):  # the wall's noise, against a 3 cm inlier band
+        wall = np.stack([rng.uniform(-2, 2, n), rng.uniform(-1.5, 0.9, n),
+                         4.0 + rng.normal(0, sd, n)], 1)
+        floor = np.stack([rng.uniform(-2, 2, 1500), 0.9 + rng.normal(0, 0.005, 1500),
+                          rng.uniform(2.6, 3.9, 1500)], 1)
+        for seed in range(3):
+            keep = _remove_planes(np.concatenate([wall, floor]),
+                                  np.random.default_rng(seed), max_planes=2, min_up=-1.0)
+            assert keep[n:].mean() < 0.1, (sd, seed)  # the floor is removed
+            assert keep[:n].mean() < 0.25, (sd, seed)  # and the wall
+
+
 def test_stored_person_near_a_wall_on_a_strip_of_floor_is_found():
     """test/data/near_wall_kinect_v1.npz: a person bending forward 1.7 m from a Kinect
     v1, a wall 0.7 m behind, the floor between seen only 0.76 m deep: floor, person and

@@ -52,6 +52,8 @@ FAR_PIECE_SHARE = 0.15  # of its size, comes this near it (or a piece merged) in
 FLOOR_STRIP_M = (0.5, 1.8)  # second look: a floor-like plane this deep and wide (m) is floor
 CELL_M = 0.1       # a plane's occupancy is counted on cells this wide (m)
 OCCLUDER_M = 0.1   # ... an empty cell this far behind the surface seen there is hidden
+SAME_PLANE_COS = math.cos(math.radians(10.0))  # a plane this near in orientation ...
+SAME_PLANE_M = 0.15  # ... and offset to one already removed is the same surface
 
 
 @dataclass
@@ -285,7 +287,8 @@ def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=2,
     # (val_s2 frame 86).
     avail = keep.copy()
     found = 0
-    for _ in range(max_planes + 3):
+    accepted: list[np.ndarray] = []  # the planes removed, (n, offset) facing the camera
+    for _ in range(max_planes + 6):  # up to 3 patches looked past, 3 planes found again
         if found == max_planes:
             break
         idx = np.flatnonzero(avail)
@@ -344,10 +347,17 @@ def _remove_planes(points: np.ndarray, rng: np.random.Generator, max_planes=2,
             continue
         keep &= ~near
         avail &= ~near
+        n_b, off_b = (nb_, ob_) if ob_ < 0 else (-nb_, -ob_)
+        if any(abs(float(n_b @ a[:3])) > SAME_PLANE_COS and
+               abs(off_b - a[3]) < SAME_PLANE_M for a in accepted):
+            # The noise beyond the inlier band of a plane already removed (a far wall
+            # seen by a stereo camera): the same surface, which takes no further plane's
+            # place (the floor a person stands on was left in their blob).
+            continue
         found += 1
+        accepted.append(np.array([*n_b, off_b]))
         if planes is not None:
-            n_b, off_b = (nb_, ob_) if ob_ < 0 else (-nb_, -ob_)
-            planes.append(np.array([*n_b, off_b]))
+            planes.append(accepted[-1])
     return keep
 
 
