@@ -42,7 +42,6 @@ TOPICS = {
     'tracked': ('bodies/tracked', 'sensor_msgs/msg/JointState'),
     'tf': ('/tf', TF_T),
 }
-IMAGE_KEYS = ('segmentation', 'labels', 'body_index')  # built from the labels (`finish`)
 
 
 class FrameOutputs:
@@ -87,8 +86,8 @@ class FrameOutputs:
     def build(self, result, persons, header, images: bool = True,
               bodies: bool = True) -> list[tuple[str, object]]:
         """(key, message or its CDR bytes) for the frame, in TOPICS order: the `images`
-        (IMAGE_KEYS: they need the finished result's labels and masks) and the `bodies`
-        (every other key: meshes, skeleton, parameters, IDs, TF)."""
+        (segmentation, labels, body index: they need the finished result's labels and
+        masks) and the `bodies` (every other key: meshes, skeleton, parameters, IDs, TF)."""
         f, o = self.f, self.opts
         out = []
         if images and o.publish_segmentation:

@@ -583,28 +583,29 @@ class ReconstructorNode(Node):
         wait for the labels), then label it (`Reconstructor.finish`) and publish its
         images (segmentation, body index)."""
         persons = list(result.persons)[:max(1, self._config.max_persons)]
-        if not self._publish(frame, result, persons, bodies=True):
+        if not self._guarded(frame, self._publish_bodies, result, persons, frame):
             return
         try:
             result = rec.finish(result)
         except Exception as e:  # noqa: BLE001 - a bad frame must not kill the node
             self._report(InputError('internal', f'{type(e).__name__}: {e}'), frame.header)
             return
-        self._publish(frame, result, list(result.persons)[:len(persons)], bodies=False)
+        self._guarded(frame, self._publish_images, result, persons, frame)
 
-    def _publish(self, frame: Frame, result, persons: list, bodies: bool) -> bool:
+    def _guarded(self, frame: Frame, publish: Callable, *args) -> bool:
+        """Run `publish(*args)`; a failure is reported (unless shutting down), not raised."""
         try:
-            if bodies:
-                self._publish_bodies(result, persons, frame)
-            else:
-                for key, msg in self._outputs.build(result, persons, frame.header,
-                                                    bodies=False):
-                    self._send(key, msg)
+            publish(*args)
             return True
         except Exception as e:  # noqa: BLE001
             if not (self._stop.is_set() or not self.context.ok()):
                 self._report(InputError('publish', f'{type(e).__name__}: {e}'), frame.header)
             return False
+
+    def _publish_images(self, result, persons: list, frame: Frame):
+        persons = list(result.persons)[:len(persons)]  # (with their labelled masks)
+        for key, msg in self._outputs.build(result, persons, frame.header, bodies=False):
+            self._send(key, msg)
 
     def _send(self, key: str, msg) -> bool:
         pub = self._pubs.get(key)
