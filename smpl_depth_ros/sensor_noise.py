@@ -29,6 +29,9 @@ PATCH = 8             # patch side (pixels of the decimated image)
 MIN_PATCHES = 6       # patches a bin needs to count (over the frames averaged) ...
 MIN_FRAME_PATCHES = 3  # ... and in one frame
 EXCESS_OVER = 1.25   # noise up to this multiple of a Kinect v1's leaves the defaults
+CLASS_HOLD = 1.15    # 'auto': a class, once held, is left only past its thresholds x this
+CLASS_HOLD_FRAMES = 10  # ... once this many frames have been measured
+CLASSES = ('tof', 'structured_light', 'stereo')
 PATCH_QUANTILE = 0.3  # a bin's sigma: this quantile of its patches' scatter (curved and
                       # edge patches scatter more than the noise, never less)
 
@@ -176,20 +179,32 @@ def estimate_noise(depth: np.ndarray, step: int | None = None) -> NoiseEstimate:
     return NoiseEstimate(z, sg, cnt, corr, int(sum(fine[k][1] for k in both)))
 
 
-def classify(sigma_at_z: np.ndarray, z: np.ndarray, corr_ratio: float) -> str:
+def classify(sigma_at_z: np.ndarray, z: np.ndarray, corr_ratio: float,
+             held: str | None = None) -> str:
     """A sensor class from measured noise (a heuristic; the thresholds use sigma(z),
     not the class): time of flight when the noise is well below a structured-light
     sensor's at the same depths (level < 0.6 of Nguyen et al.'s), stereo when it is
     well above (> 1.3) or strongly correlated in space (ratio < 0.7; a real Kinect v1,
-    block matching too, measures 0.73 at level 1.0), else structured light."""
+    block matching too, measures 0.73 at level 1.0), else structured light. The level
+    is the median over the depth bins from 1.5 to 4.5 m, where people are measured (a
+    stereo camera's noise over a Kinect v1's falls with depth, both growing as z^2: the
+    far walls alone can measure an OAK-D Pro below 1.3).
+
+    `held`: the class so far. Leaving it takes the noise level past the thresholds
+    by a factor CLASS_HOLD (a camera does not change class)."""
     z = np.asarray(z, np.float64)
     if not len(z):
         return 'unknown'
-    far = z >= 1.5 if (z >= 1.5).any() else np.ones(len(z), bool)
+    far = (z >= 1.5) & (z <= 4.5)
+    if not far.any():
+        far = z >= 1.5 if (z >= 1.5).any() else np.ones(len(z), bool)
     level = float(np.median(np.asarray(sigma_at_z)[far] / kinect_v1_sigma(z[far])))
-    if level < 0.6:
+    # h > 1 makes a class easier to stay in, 1 / h harder to enter from another
+    h = {c: 1.0 if held not in CLASSES else CLASS_HOLD if c == held else 1.0 / CLASS_HOLD
+         for c in CLASSES}
+    if level < 0.6 * h['tof']:
         return 'tof'
-    if level > 1.3 or (corr_ratio < 0.7 and level > 0.8):
+    if level > 1.3 / h['stereo'] or (corr_ratio < 0.7 and level > 0.8 / h['stereo']):
         return 'stereo'
     return 'structured_light'
 
@@ -200,7 +215,8 @@ class AutoNoise:
     Per depth bin, a running mean of the frames' measurements weighted by their patch
     counts (at most `memory` frames' worth: a changed scene or camera settles within a
     few seconds); the correlation ratio likewise. Bins never measured follow the nearest
-    measured ones as z^2 (NoiseModel's extrapolation).
+    measured ones as z^2 (NoiseModel's extrapolation). The class of each estimate is held
+    into the next once CLASS_HOLD_FRAMES frames have been measured (`classify`).
     """
 
     def __init__(self, memory: int = 30):
@@ -209,6 +225,7 @@ class AutoNoise:
         self._corr = [0.0, 0.0]
         self.frames = 0
         self._model: NoiseModel | None = None  # the estimate, until the next update
+        self._kind: str | None = None  # the class of the last estimate
 
     def update(self, depth: np.ndarray) -> None:
         e = estimate_noise(depth)
@@ -238,8 +255,10 @@ class AutoNoise:
         z = np.array([(k + 0.5) * BIN_M for k in ks])
         sg = np.array([self._sum[k][0] / self._sum[k][1] for k in ks])
         corr = self._corr[0] / self._corr[1] if self._corr[1] > 0 else 1.0
+        held = self._kind if self.frames > CLASS_HOLD_FRAMES else None
+        self._kind = classify(sg, z, corr, held)
         return NoiseModel(tuple(float(v) for v in z), tuple(float(v) for v in sg),
-                          classify(sg, z, corr), 'estimated')
+                          self._kind, 'estimated')
 
 
 def sensor_choices() -> tuple[str, ...]:

@@ -202,6 +202,34 @@ def test_auto_tells_stereo_from_kinect_and_measures_its_noise(body):
             assert 0.6 < ratio < 1.5, (name, ratio)
 
 
+def test_auto_keeps_a_far_oak_d_pro_stereo(body):
+    """An OAK-D Pro's noise is 1.3-1.45x a Kinect v1's where people are (1.5-4.5 m) but
+    falls towards 1.2x on far walls: people 3-5 m away (the rooms' walls beyond) must
+    still measure as stereo."""
+    auto = sn.AutoNoise()
+    for fr in _frames(body, 'oak_d_pro', n=10, seed=3, depth=(3.0, 5.0)):
+        auto.update(fr['depth'])
+    assert auto.model().kind == 'stereo'
+
+
+def test_auto_class_is_held_until_the_noise_is_clearly_another():
+    """A class once measured is left only past its thresholds by CLASS_HOLD: a level
+    between stays where it was."""
+    z = np.arange(1.75, 4.5, 0.5)
+    at = lambda level: level * sn.kinect_v1_sigma(z)  # noqa: E731
+    assert sn.classify(at(1.45), z, 0.9) == 'stereo'
+    assert sn.classify(at(1.2), z, 0.9) == 'structured_light'
+    assert sn.classify(at(1.2), z, 0.9, held='stereo') == 'stereo'
+    assert sn.classify(at(1.45), z, 0.9, held='structured_light') == 'structured_light'
+    assert sn.classify(at(1.6), z, 0.9, held='structured_light') == 'stereo'
+    assert sn.classify(at(1.0), z, 0.9, held='stereo') == 'structured_light'
+    assert sn.classify(at(0.55), z, 0.9, held='structured_light') == 'structured_light'
+    assert sn.classify(at(0.65), z, 0.9, held='tof') == 'tof'
+    # a Kinect-like level far from the thresholds: the same whatever was held
+    for held in (None, 'tof', 'stereo', 'structured_light'):
+        assert sn.classify(at(0.95), z, 0.9, held=held) == 'structured_light', held
+
+
 def test_auto_on_the_real_kinect_frame():
     from PIL import Image
     d = np.asarray(Image.open('test/data/five_people_depth_mm.png')).astype(np.float64) / 1e3
