@@ -590,7 +590,7 @@ class ReconstructorNode(Node):
         except Exception as e:  # noqa: BLE001 - a bad frame must not kill the node
             self._report(InputError('internal', f'{type(e).__name__}: {e}'), frame.header)
             return
-        self._guarded(frame, self._publish_images, result, persons, frame)
+        self._guarded(frame, self._publish_images, result, len(persons), frame)
 
     def _guarded(self, frame: Frame, publish: Callable, *args) -> bool:
         """Run `publish(*args)`; a failure is reported (unless shutting down), not raised."""
@@ -602,8 +602,10 @@ class ReconstructorNode(Node):
                 self._report(InputError('publish', f'{type(e).__name__}: {e}'), frame.header)
             return False
 
-    def _publish_images(self, result, persons: list, frame: Frame):
-        persons = list(result.persons)[:len(persons)]  # (with their labelled masks)
+    def _publish_images(self, result, n: int, frame: Frame):
+        """The images of the finished `result`'s first `n` persons (those whose bodies
+        were published; finished: with their labelled masks)."""
+        persons = list(result.persons)[:n]
         for key, msg in self._outputs.build(result, persons, frame.header, bodies=False):
             self._send(key, msg)
 
