@@ -308,6 +308,30 @@ def test_sweep_tool_writes_json_and_plot(tmp_path):
     assert sweep.main(['--sensors', 'nope']) == 2
 
 
+def test_sweep_reports_each_motion_of_the_motion_capture(tmp_path):
+    """`--poses mocap`: every frame is counted under the motion it was drawn from, and
+    the summary's per-motion figures are those frames'."""
+    from smpl_depth_ros.tools import sweep
+    out = tmp_path / 'm.json'
+    assert sweep.main(['--sensors', 'kinect_v1', '--bins', '2.0', '3.0', '1.0', '--frames',
+                       '6', '--poses', 'mocap', '--seed', '5', '--json', str(out),
+                       '-p', 'fit.icp_rounds=0']) == 0
+    res = json.loads(out.read_text())
+    (row,) = res['rows']
+    per = row['motions']
+    assert set(per) <= {'climbing', 'box lifting'} and sum(map(len, per.values())) == 6
+    found = [v for vs in per.values() for v in vs if v is not None]
+    assert len(found) == round(row['reconstructed'] * 6)
+    assert abs(np.mean(found) - row['pve_mm']) < 0.1
+    summary = res['summary']['kinect_v1']['motions']
+    for m, vs in per.items():
+        ok = [v for v in vs if v is not None]
+        assert summary[m]['frames'] == len(vs)
+        assert summary[m]['reconstructed'] == round(len(ok) / len(vs), 3)
+        if ok:
+            assert abs(summary[m]['pve_mm'] - np.mean(ok)) < 0.1
+
+
 def test_surface_distance_is_zero_for_a_mesh_and_its_shift():
     import trimesh
     from smpl_depth_ros.evaluation import surface_distance

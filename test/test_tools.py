@@ -140,3 +140,65 @@ def test_mocap_retargeting_recovers_a_known_pose_and_the_shipped_poses_load(tmp_
     lo, hi = shipped.limits[..., 0], shipped.limits[..., 1]
     assert ((draws >= lo - 1e-9) & (draws <= hi + 1e-9)).all()
     assert np.degrees(np.linalg.norm(draws, axis=-1)).mean() > 10  # not the rest pose
+
+
+def test_box_lifting_clips_are_retargeted_with_the_body_tilt(tmp_path):
+    """An OMOMO box-lifting clip (holosoma's .pt layout: a (frames, 591) tensor, the 52
+    SMPL-H joints in columns 162-317, z up) made from anny bodies bent forward and leaning
+    sideways: read with weights_only, retargeted, and the pose with its recovered whole-body
+    tilt (pitch, roll) rebuilds each body; the shipped file holds both motions (the
+    climbers upright), and the mocap sampler draws bent bodies from it."""
+    import torch
+    from scipy.spatial.transform import Rotation
+
+    from smpl_depth_ros.body import load_body_model
+    from smpl_depth_ros.synth.poses import PoseSampler, _rot
+    from smpl_depth_ros.tools import export_mocap_poses as emp
+    body = load_body_model('anny', dtype=torch.float64)
+    sampler = PoseSampler(body, mode='templates')
+    C = body.canonical_rotation.numpy()
+    rng = np.random.default_rng(8)
+    canon = np.stack([sampler.sample_canonical(rng) for _ in range(3)])
+    tilts = np.array([[0.6, 0.0], [-0.3, 0.25], [0.0, -0.4]])  # (pitch, roll), radians
+
+    def bodies(poses, tilt):  # canonical world (y up), no heading
+        q = body.zero_params(len(poses))
+        q['pose'] = torch.as_tensor(np.asarray(poses, np.float64) @ C)
+        q['global_orient'] = torch.as_tensor(np.stack([Rotation.from_matrix(
+            _rot(0, p) @ _rot(2, r) @ C).as_rotvec() for p, r in tilt]))
+        with torch.no_grad():
+            out = body(**q)
+        return out.joints.numpy(), out.vertices.numpy()
+    joints, true = bodies(canon, tilts)
+    rows = np.zeros((3, 591), np.float32)
+    slots = rows[:, emp.SMPLH_COLUMNS].reshape(3, 52, 3)
+    names = list(body.joint_names)
+    for ours, theirs in emp.SMPLH_MAP.items():
+        slots[:, emp.SMPLH_JOINTS.index(theirs)] = joints[:, names.index(ours)] \
+            @ emp.WORLD_FROM_CANONICAL.T
+    rows[:, emp.SMPLH_COLUMNS] = slots.reshape(3, -1)
+    folder = tmp_path / 'holosoma_retargeting' / 'demo_data' / 'OMOMO_new'
+    folder.mkdir(parents=True)
+    torch.save(torch.from_numpy(rows), folder / 'sub1_largebox_001.pt')
+    files = emp.clip_files(str(tmp_path))
+    assert [m for m, _ in files] == ['box lifting']
+    out = emp.retarget(files, body, every=1, max_residual_m=0.05)
+    assert out['poses'].shape == (3, len(names) - 1, 3) and (out['residual_m'] < 0.01).all()
+    assert list(out['clip_motion']) == ['box lifting']
+    _, got = bodies(out['poses'], out['root'])
+    _, upright = bodies(out['poses'], np.zeros((3, 2)))
+    pve = np.linalg.norm(got[:, None] - true[None], axis=-1).mean(-1)  # (retargeted, source)
+    assert (pve.argmin(1) == np.arange(3)).all() and np.diag(pve).max() < 0.1, pve
+    # without the tilt, the bent and leaning bodies are not rebuilt
+    assert np.linalg.norm(upright - true, axis=-1).mean(-1)[:2].min() > 2 * np.diag(pve).max()
+    shipped = PoseSampler(body, mode='mocap')
+    assert sorted(shipped.motions) == ['box lifting', 'climbing']
+    assert min(len(m) for m in shipped.motions.values()) > 100
+    tilt = {k: np.abs(shipped.mocap_root[m]).max() for k, m in shipped.motions.items()}
+    assert tilt['climbing'] == 0 and np.degrees(tilt['box lifting']) > 15
+    drawn = {}
+    for _ in range(60):
+        root = shipped.sample_with_root(rng)[1]
+        drawn.setdefault(shipped.last_motion, []).append(np.abs(root).max())
+    assert sorted(drawn) == ['box lifting', 'climbing'] and max(drawn['climbing']) == 0
+    assert np.degrees(max(drawn['box lifting'])) > 15  # bent over, as lifted

@@ -20,9 +20,11 @@ generic joint names. Two distributions (`PoseSampler(mode=...)`):
   (`synth.render.chair_under`) under them. No network was trained on these: they measure
   a person merged with the furniture they sit on;
 * 'mocap': real motion capture retargeted to anny (`data/mocap_poses_anny.npz`, written
-  by tools/export_mocap_poses from the climbing clips of holosoma-retargeting: 1,264
-  poses), mirrored at random, with a little noise, upright. For evaluation on motions
-  nobody designed; the other modes are what the networks were trained on.
+  by tools/export_mocap_poses from the demo clips of holosoma-retargeting: climbing, 1,264
+  poses, upright, and box lifting, 119, bent over as the person was: the clip's pitch
+  and roll of the whole body, `sample_with_root`), a motion drawn first (each as often),
+  then one of its poses, mirrored at random, with a little noise. For evaluation on
+  motions nobody designed; the other modes are what the networks were trained on.
 """
 from __future__ import annotations
 
@@ -165,19 +167,21 @@ def _mirror_name(n: str) -> str:
     return n
 
 
-def mocap_poses(names: list[str]) -> np.ndarray:
-    """(N, P, 3) canonical poses of the shipped motion capture (data/mocap_poses_anny.npz)
-    for the fitted joints `names` (generic joint names; a joint the file lacks stays at
-    rest)."""
+def mocap_poses(names: list[str]) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """The shipped motion capture (data/mocap_poses_anny.npz) for the fitted joints `names`
+    (generic joint names; a joint the file lacks stays at rest): (N, P, 3) canonical
+    poses, (N, 2) whole-body (pitch, roll) in radians, and each motion's pose indices."""
     from importlib import resources
     path = resources.files('smpl_depth_ros') / 'data' / 'mocap_poses_anny.npz'
     with np.load(str(path), allow_pickle=False) as f:
         poses, have = f['poses'].astype(np.float64), list(f['joint_names'])
+        root = f['root'].astype(np.float64)
+        motion = f['clip_motion'][f['clip']]
     out = np.zeros((len(poses), len(names), 3))
     for i, n in enumerate(names):
         if n in have:
             out[:, i] = poses[:, have.index(n)]
-    return out
+    return out, root, {str(m): np.flatnonzero(motion == m) for m in np.unique(motion)}
 
 
 def elbow_axes(body: BodyModel) -> dict[str, np.ndarray]:
@@ -233,7 +237,9 @@ class PoseSampler:
         w = np.array([BROAD_TEMPLATE_WEIGHTS[t] for t in self.postures])
         self.posture_weights = w / w.sum()
         self.hinges = [i for i, n in enumerate(self.names) if n.endswith(('_knee', '_elbow'))]
-        self.mocap = mocap_poses(self.names) if mode == 'mocap' else None
+        self.mocap, self.mocap_root, self.motions = (
+            mocap_poses(self.names) if mode == 'mocap' else (None, None, {}))
+        self.last_motion: str | None = None  # the motion of the last mocap draw
 
     def template(self, name: str, amplitude: float = 1.0, mirror: bool = False) -> np.ndarray:
         """(P, 3) canonical axis-angle (radians) of a template."""
@@ -300,7 +306,7 @@ class PoseSampler:
 
     def sample_with_root(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """(P, 3) canonical pose and the whole-body (pitch, roll) in radians it implies
-        (non-zero only for 'broad' postures such as lying)."""
+        (non-zero for 'broad' postures such as lying, and for motion capture)."""
         root = np.zeros(2)
         if self.mode == 'templates':
             return self.sample_canonical(rng), root
@@ -309,9 +315,13 @@ class PoseSampler:
             return self._from_templates(rng, names, np.full(len(names), 1 / len(names)),
                                         9.0, amp=(0.85, 1.1)), root
         if self.mode == 'mocap':
-            pose = self.mocap[rng.integers(len(self.mocap))].astype(np.float64)
+            self.last_motion = list(self.motions)[rng.integers(len(self.motions))]
+            of = self.motions[self.last_motion]
+            i = of[rng.integers(len(of))]
+            pose, root = self.mocap[i].astype(np.float64), self.mocap_root[i].copy()
             self.last_mirror = bool(rng.random() < 0.5)
-            pose = self.mirror(pose) if self.last_mirror else pose
+            if self.last_mirror:
+                pose, root[1] = self.mirror(pose), -root[1]
             pose = pose + rng.normal(0, np.deg2rad(3.0), pose.shape)
             return self._head(rng, pose), root
         kinds = list(BROAD_MIX)
