@@ -70,7 +70,8 @@ def test_broad_network_segments_stereo_crops_and_broad_poses_better(body):
         return np.mean([((lab == c) & (gt == c)).sum() / max(((lab == c) | (gt == c)).sum(), 1)
                         for c in range(1, 15) if (gt == c).any()])
     broad, original = CorrespondenceNet(body, path), CorrespondenceNet(body)
-    assert broad.meta['poses'] == 'broad' and {'realsense_d435', 'oak_d'} <= set(broad.meta['sensors'])
+    assert broad.meta['poses'] == 'broad'
+    assert {'realsense_d435', 'oak_d'} <= set(broad.meta['sensors'])
     assert miou(broad) > miou(original) + 0.05, (miou(broad), miou(original))
 
 
