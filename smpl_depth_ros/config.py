@@ -143,6 +143,10 @@ class PipelineConfig:
     second_network: bool = param(True, 'when a body was seen but no fit explained it, retry '
                                  "the frame's candidates with the other shipped network (the "
                                  'broad or the original one; not with weights_path)', **_A)
+    both_networks: bool = param(True, 'a new person (no warm start) is fitted with both '
+                                'shipped networks and the fit whose mesh lies nearer the '
+                                'depth is kept (twice a cold fit; not with weights_path)',
+                                **_A)
     max_persons: int = param(3, 'persons reconstructed per frame (most central first)',
                              range=(1, 100))
     min_person_pixels: int = param(400, 'smallest person blob (pixels)',
@@ -276,6 +280,10 @@ MAX_CLAIMED = 0.5  # a further person: at most this share of its pixels an earli
 HELD_BODY_GAIN = 0.5  # a tracked person whose warm fit failed: their last tracked body moved
                      # into place replaces the cold fit when its median residual is at most
                      # this share of the cold fit's (pipeline; validation multi_s31/35)
+SEE_THROUGH_GAP_M = 0.05  # both_networks: a fit's score is refine.depth_gap plus this many
+                         # metres times its see-through share (validation: the gap alone
+                         # kept fits standing in free space, val_s2 30.1 -> 30.8 mm; with
+                         # this term 30.2)
 GIVE_UP = 1.5  # a new blob beside a person found: its cold fit stops after the first run
                # when that leaves a median target residual above this many times the
                # rejection residual (persons' first runs <= 0.45 times, pieces of the

@@ -21,7 +21,7 @@ from smpl_depth_ros.config import (EXTRA_CANDIDATES, GIVE_UP, HELD_BODY_GAIN, MA
                                    MIN_BODY_SHARE, MIN_COLD_SCORE, MIN_PART_SHARE,
                                    NEAREST_CANDIDATES, NOT_PERSON_FRAMES, NOT_PERSON_IOU,
                                    SECOND_LOOK_CANDIDATES, SECOND_LOOK_EVERY,
-                                   PipelineConfig)
+                                   SEE_THROUGH_GAP_M, PipelineConfig)
 from smpl_depth_ros.fit import Fitter, backproject  # noqa: F401  (re-exported)
 from smpl_depth_ros.fit.freespace import FreeSpace, see_through_share, supporting_planes
 from smpl_depth_ros.net.infer import CorrespondenceNet, broad_weights
@@ -29,8 +29,8 @@ from smpl_depth_ros.net.preprocess import (BEHIND_GAP_M, crop_depth, enclosed_sh
                                            find_persons, network_input, pixel_points,
                                            split_side_by_side)
 from smpl_depth_ros.rectify import Lens, Rectifier
-from smpl_depth_ros.refine import (SurfaceParts, facing_camera, near_surface_pixels, rigid_icp,
-                                   refine_correspondences)
+from smpl_depth_ros.refine import (SurfaceParts, depth_gap, facing_camera, near_surface_pixels,
+                                   refine_correspondences, rigid_icp)
 from smpl_depth_ros.segmentation import (LabelSurface, label_window,
                                          paste_model_labels, paste_network_labels)
 from smpl_depth_ros.sensor_noise import (AutoNoise, NoiseModel, check_sensor, noise_model,
@@ -811,19 +811,26 @@ class Reconstructor:
                     split_done.update(id(h) for h in halves)
                     crops.extend(halves)
                 continue
-            # ICP inside the predicted parts on this frame's fitted mesh, then a refit, to
-            # which the pixels the network left out join where they lie on the mesh.
-            for _ in range(0 if moved else cfg.fit.tracking_icp_rounds if tracked
-                           else cfg.fit.icp_rounds):
-                front = facing_camera(fit.vertices, self.faces, cfg.fit.icp_front_cos)
-                vids = refine_correspondences(pts, vids, fit.vertices, self.surface, front)
-                xp, xv = near_surface_pixels(d, K, fit.vertices, r, c, crop, self.surface,
-                                             front, fitter.cfg.icp_margin_m)
-                fit = fitter.fit(np.concatenate([pts, xp]), np.concatenate([vids, xv]),
-                                 init=fit.params, fix_shape=False,
-                                 iterations=cfg.fit.tracking_iterations,
-                                 free_space=free,
-                                 tangent_weight=cfg.fit.icp_tangent_weight)
+            fit, vids = self._refine(fit, pts, vids, d, K, r, c, crop, fitter, free,
+                                     0 if moved else cfg.fit.tracking_icp_rounds if tracked
+                                     else cfg.fit.icp_rounds)
+            other = self._other(net) if cfg.both_networks else None
+            if other is not None and not tracked:
+                # A new person (or one whose warm fit failed): the other shipped network's
+                # correspondences are fitted too, and the fit whose mesh lies nearer the
+                # blob's points and less where the sensor looked through it is kept
+                # (`_other_fit`): each network gets some poses and sensors right that the
+                # other gets wrong.
+                tn = time.perf_counter()
+                (lb,), (cb,) = other.predict(x[i][None], flip_tta=cfg.flip_tta)
+                dt = time.perf_counter() - tn
+                timings['network'] += dt * 1e3
+                tf += dt  # (the fit's time leaves the network pass out)
+                alt = self._other_fit(d, K, crop, x[i], lb, cb, other, fitter, free, reject,
+                                      fit)
+                if alt is not None:
+                    fit, vids, pts, r, c = alt
+                    lab[i], coords[i] = lb, cb
             seen_through = (see_through_share(fit.vertices, self.faces, d, K,
                                               fitter.cfg.free_space_margin)
                             if persons else 0.0)
@@ -917,6 +924,52 @@ class Reconstructor:
                  if tta else {})
         return ([crops[i] for i in order] + extra, [x[i] for i in order],
                 [lab[i] for i in order], [coords[i] for i in order], plain)
+
+    def _refine(self, fit, pts, vids, d, K, r, c, crop, fitter, free, rounds: int):
+        """ICP inside the predicted parts on the fitted mesh, then a refit, to which the
+        pixels the network left out join where they lie on the mesh; `rounds` times.
+        Returns (FitResult, the points' vertices)."""
+        cfg = self.config
+        for _ in range(rounds):
+            front = facing_camera(fit.vertices, self.faces, cfg.fit.icp_front_cos)
+            vids = refine_correspondences(pts, vids, fit.vertices, self.surface, front)
+            xp, xv = near_surface_pixels(d, K, fit.vertices, r, c, crop, self.surface,
+                                         front, fitter.cfg.icp_margin_m)
+            fit = fitter.fit(np.concatenate([pts, xp]), np.concatenate([vids, xv]),
+                             init=fit.params, fix_shape=False,
+                             iterations=cfg.fit.tracking_iterations, free_space=free,
+                             tangent_weight=cfg.fit.icp_tangent_weight)
+        return fit, vids
+
+    def _other_fit(self, d, K, crop, x, lab, coords, net, fitter, free, reject, fit):
+        """`both_networks`: the cold fit, refined, of a candidate's network input `x` with
+        another network's labels and coordinates (`lab`, `coords` of `net`), when its
+        mesh lies nearer the blob's points than `fit`'s (`refine.depth_gap`, on the
+        pixels of the network input, plus SEE_THROUGH_GAP_M times its
+        `see_through_share`: a limb standing where the sensor looked through it) and its
+        median residual is within `reject`.
+        Returns (FitResult, vertex ids, points, rows, cols) or None."""
+        fg = body_pixels(x, lab)
+        if fg.sum() < MIN_BODY_PIXELS:
+            return None
+        rr, cc, _ = crop.sample_indices(d.shape)
+        r, c = rr[fg], cc[fg]
+        pts = pixel_points(r, c, d[r, c], K).astype(np.float32)
+        vids = net.lookup(lab, coords, fg)
+        alt = fitter.fit(pts, vids, free_space=free)
+        if alt.median_residual > reject:
+            return None
+        alt, vids = self._refine(alt, pts, vids, d, K, r, c, crop, fitter, free,
+                                 self.config.fit.icp_rounds)
+        blob = (x[1] > 0) & (d[rr, cc] > 0)
+        rb, cb = rr[blob], cc[blob]
+        seen = pixel_points(rb, cb, d[rb, cb], K)
+        margin = fitter.cfg.free_space_margin
+
+        def worse(f):  # metres: how far the points lie from it, and how much it is seen through
+            return depth_gap(seen, f.vertices, self.faces) + SEE_THROUGH_GAP_M * \
+                see_through_share(f.vertices, self.faces, d, K, margin)
+        return None if worse(alt) >= worse(fit) else (alt, vids, pts, r, c)
 
     def _fit(self, pts, vids, stamp_ns, track=None, free=None, fitter=None, give_up_m=None):
         """Fit one person: warm-started from the previous frame while the track holds

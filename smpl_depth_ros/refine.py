@@ -5,6 +5,8 @@ the part the network predicted (`refine_correspondences`), and the pixels the ne
 out join where they lie on the mesh (`near_surface_pixels`); the pipeline refits to both.
 Both match pixels to vertices facing the camera only (`facing_camera`), as does the rigid
 ICP (`rigid_icp`) that moves a tracked person's last body onto what is seen of them.
+`depth_gap` scores how well a fitted mesh explains a blob's points, whatever network gave
+the correspondences.
 """
 from __future__ import annotations
 
@@ -41,6 +43,25 @@ class SurfaceParts:
         valid = body.valid_vertices.cpu().numpy()
         return cls(body.faces_numpy(), parts, np.flatnonzero(valid),
                    [np.flatnonzero((parts == p) & valid) for p in range(int(parts.max()) + 1)])
+
+
+GAP_CAP_M = 0.1  # depth_gap: a point's distance counts up to this (an outlier's no more)
+_GAP_BARY = np.array([[1, 1, 1], [4, 1, 1], [1, 4, 1], [1, 1, 4]], np.float64)
+_GAP_BARY /= _GAP_BARY.sum(1, keepdims=True)  # depth_gap: 4 points in each triangle
+
+
+def depth_gap(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> float:
+    """How far a person's points lie from a fitted mesh: the mean over `points` (N, 3) of
+    the distance to the nearest of four points in each triangle of the mesh (`vertices`,
+    `faces`), each capped at GAP_CAP_M (metres). It needs no correspondences, so it
+    compares fits made from two networks' on the same blob (`both_networks`): a limb
+    fitted where no pixel is, or a pixel no limb reaches, raises it."""
+    if not len(points):
+        return GAP_CAP_M
+    tri = vertices[faces].astype(np.float64)  # (F, 3, 3)
+    samples = np.einsum('sk,fkd->fsd', _GAP_BARY, tri).reshape(-1, 3)
+    dist, _ = cKDTree(samples).query(points, distance_upper_bound=GAP_CAP_M)
+    return float(np.minimum(dist, GAP_CAP_M).mean())
 
 
 def refine_correspondences(pts, vids, vertices, surface: SurfaceParts,

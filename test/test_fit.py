@@ -587,3 +587,21 @@ def test_the_rim_of_a_hand_held_out_is_not_free_space(body):
     own = FreeSpace(depth, cam.K, ref_depth=ref, own=blob).targets(V)[0]
     assert len(without) >= 5 and hands[without].mean() > 0.5, (len(without), hands[without])
     assert len(own) == 0, own
+
+
+def test_depth_gap_is_small_on_the_mesh_and_grows_with_a_limb_out_of_place(body):
+    """refine.depth_gap: the camera-facing vertices of a body (3 mm noise) lie within a
+    few millimetres of its mesh; from the same mesh 5 cm farther they lie 2.5-5 cm (its
+    sides come nearer than the shift), and a point far from any mesh counts GAP_CAP_M,
+    no more."""
+    from smpl_depth_ros.refine import GAP_CAP_M, depth_gap, facing_camera
+    rng, V, _, _ = _scene(body, 7)
+    F = body.faces_numpy()
+    seen = V[facing_camera(V, F, 0.0)] + rng.normal(0, 0.003, (1, 3))
+    on = depth_gap(seen, V, F)
+    off = depth_gap(seen, V + np.array([0.0, 0.0, 0.05]), F)
+    assert on < 0.012 and 0.025 < off < 0.05, (on, off)
+    far = np.concatenate([seen, seen[:1] + np.array([0.0, 0.0, 2.0])])
+    assert depth_gap(far, V, F) == pytest.approx(
+        (on * len(seen) + GAP_CAP_M) / len(far), rel=0.02)
+    assert depth_gap(np.zeros((0, 3)), V, F) == GAP_CAP_M

@@ -613,3 +613,30 @@ def test_a_person_beside_a_nearer_one_inside_their_blobs_box_is_reconstructed():
            if (c.mask & (who == 0)).sum() > 0.5 * (who == 0).sum()]
     assert len(far) == 1 and far[0].behind  # in the box of the near person's blob
     assert enclosed_share(far[0].mask, who == 2) < MIN_ENCLOSED
+
+
+def test_both_networks_keep_the_fit_nearer_the_depth():
+    """test/data/broad_pose_2m_kinect_v1.npz: a broad pose 2.3 m from a Kinect v1. The
+    original network's fit is accepted but far off; with `both_networks` (the default) the
+    broad network's correspondences are fitted too, and that fit, whose mesh lies nearer
+    the person's points (refine.depth_gap), is kept."""
+    from dataclasses import replace
+
+    from smpl_depth_ros.config import PipelineConfig
+    from smpl_depth_ros.net.preprocess import pixel_points
+    from smpl_depth_ros.pipeline import Reconstructor
+    from smpl_depth_ros.refine import depth_gap
+    f = np.load('test/data/broad_pose_2m_kinect_v1.npz')
+    depth = f['depth_mm'] / 1000.0
+    cfg = PipelineConfig(tracking=False, device='cpu', max_persons=1)
+    both = Reconstructor(cfg)
+    one = Reconstructor(replace(cfg, both_networks=False), body=both.body)
+    p_both = both.process(depth, f['K']).persons[0]
+    p_one = one.process(depth, f['K']).persons[0]
+    err = {k: np.linalg.norm(p.vertices - f['vertices'], axis=1).mean()
+           for k, p in (('both', p_both), ('one', p_one))}
+    assert err['one'] > 0.12 and err['both'] < 0.09, err
+    r, c = p_one.pixels.T
+    pts = pixel_points(r, c, depth[r, c], f['K'])
+    faces = both.body.faces_numpy()
+    assert depth_gap(pts, p_both.vertices, faces) < depth_gap(pts, p_one.vertices, faces)
