@@ -371,12 +371,13 @@ def test_stored_far_stereo_frame_is_reconstructed(monkeypatch):
     given.process(depth, f['K'])
     assert given.noise.kind == 'stereo' and given.net.path == default_weights('anny')
     # fixed Kinect thresholds and the original network alone, one person wanted, the
-    # most central candidates only: no fit is accepted (with `second_network`, the
-    # default, the broad network's is, as the last look; with max_persons 3, the
+    # most central candidates only: no fit is accepted (with `second_network` or
+    # `both_networks`, the defaults, the broad network's is; with max_persons 3, the
     # default, or with the nearest candidates too, the person is found)
     monkeypatch.setattr(pipeline, 'NEAREST_CANDIDATES', 0)
     fixed = Reconstructor(PipelineConfig(tracking=False, device='cpu', sensor='none',
-                                         second_network=False, max_persons=1),
+                                         second_network=False, both_networks=False,
+                                         max_persons=1),
                           body=rec.body)
     try:
         p = fixed.process(depth, f['K']).persons[0]
