@@ -143,10 +143,10 @@ class PipelineConfig:
     second_network: bool = param(True, 'when a body was seen but no fit explained it, retry '
                                  "the frame's candidates with the other shipped network (the "
                                  'broad or the original one; not with weights_path)', **_A)
-    both_networks: bool = param(True, 'a new person (no warm start) is fitted with both '
-                                'shipped networks and the fit whose mesh lies nearer the '
-                                'depth is kept (twice a cold fit; not with weights_path)',
-                                **_A)
+    both_networks: bool = param(True, 'a new person (without tracking: every person) is '
+                                'fitted with both shipped networks and the fit whose mesh '
+                                'lies nearer the depth is kept (twice a cold fit; not with '
+                                'weights_path)', **_A)
     max_persons: int = param(3, 'persons reconstructed per frame (most central first)',
                              range=(1, 100))
     min_person_pixels: int = param(400, 'smallest person blob (pixels)',

@@ -641,3 +641,26 @@ def test_both_networks_keep_the_fit_nearer_the_depth():
     pts = pixel_points(r, c, depth[r, c], f['K'])
     faces = both.body.faces_numpy()
     assert depth_gap(pts, p_both.vertices, faces) < depth_gap(pts, p_one.vertices, faces)
+
+
+def test_both_networks_fit_a_new_person_twice_and_a_tracked_one_once():
+    """With tracking, only a person without a track is fitted from both networks: a
+    tracked person is warm-started, and one whose warm start a slow frame broke (a gap
+    above tracking_max_gap_s, within track_timeout_s) is fitted once, cold, so that one
+    slow frame does not make the next slower."""
+    from smpl_depth_ros.config import PipelineConfig
+    from smpl_depth_ros.pipeline import Reconstructor
+    f = np.load('test/data/broad_pose_2m_kinect_v1.npz')
+    depth = f['depth_mm'] / 1000.0
+    rec = Reconstructor(PipelineConfig(tracking=True, device='cpu', max_persons=1))
+    other = rec.other_net
+    calls = []
+    predict = other.predict
+    other.predict = lambda *a, **k: calls.append(1) or predict(*a, **k)
+    ids = []
+    for stamp_s, fitted_twice in ((0.0, True), (0.033, False), (0.733, False)):
+        n = len(calls)
+        p = rec.process(depth, f['K'], stamp_ns=int(stamp_s * 1e9)).persons[0]
+        ids.append(p.track_id)
+        assert (len(calls) > n) == fitted_twice, (stamp_s, len(calls) - n)
+    assert len(set(ids)) == 1
