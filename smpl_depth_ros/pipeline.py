@@ -828,8 +828,8 @@ class Reconstructor:
                 dt = time.perf_counter() - tn
                 timings['network'] += dt * 1e3
                 tf += dt  # (the fit's time leaves the network pass out)
-                alt = self._other_fit(d, K, crop, x[i], lb, cb, other, fitter, free, reject,
-                                      fit)
+                alt = self._other_fit(d, K, crop, rr, cc, x[i], lb, cb, other, fitter, free,
+                                      reject, fit)
                 if alt is not None:
                     fit, vids, pts, r, c = alt
                     lab[i], coords[i] = lb, cb
@@ -943,8 +943,9 @@ class Reconstructor:
                              tangent_weight=cfg.fit.icp_tangent_weight)
         return fit, vids
 
-    def _other_fit(self, d, K, crop, x, lab, coords, net, fitter, free, reject, fit):
-        """`both_networks`: the cold fit, refined, of a candidate's network input `x` with
+    def _other_fit(self, d, K, crop, rr, cc, x, lab, coords, net, fitter, free, reject, fit):
+        """`both_networks`: the cold fit, refined, of a candidate's network input `x` (its
+        pixels `rr`, `cc` in the image: `Crop.sample_indices`) with
         another network's labels and coordinates (`lab`, `coords` of `net`), when its
         mesh lies nearer the blob's points than `fit`'s (`refine.depth_gap`, on the
         pixels of the network input, plus SEE_THROUGH_GAP_M times its
@@ -954,7 +955,6 @@ class Reconstructor:
         fg = body_pixels(x, lab)
         if fg.sum() < MIN_BODY_PIXELS:
             return None
-        rr, cc, _ = crop.sample_indices(d.shape)
         r, c = rr[fg], cc[fg]
         pts = pixel_points(r, c, d[r, c], K).astype(np.float32)
         vids = net.lookup(lab, coords, fg)
