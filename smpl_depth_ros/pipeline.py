@@ -66,8 +66,8 @@ class Detection:
             nearest of the others (`Crop.nearest`).
         ms: time the detection took.
         passes: id(crop) -> (crop, network input, labels, coords, Eq. 2 vertex ids of its
-            body pixels): the network passes made ahead (`Reconstructor.look_ahead`);
-            `reconstruct` makes the others.
+            body pixels, the network that made it): the network passes made ahead
+            (`Reconstructor.look_ahead`); `reconstruct` makes the others.
         ahead_ms: time those passes and lookups took (counted as the network's).
         rectifier: the lens's maps when the frame was resampled from a lens's own image
             (`undistort`; `depth` and `K` are then the pinhole image's), else None.
@@ -462,30 +462,38 @@ class Reconstructor:
         prev = [tr.mask for tr in list(self.tracker.tracks)
                 if tr.fit is not None and tr.mask is not None
                 and tr.mask.shape == det.depth.shape]
+        nets = {}  # id(crop) -> the network of the track whose pixels it covers most
         if cfg.tracking and prev:
             known = list(self._not_persons)
             crops = by_overlap([c for c in crops if not c.behind and c.mask is not None
                                 and not known_blob(c.mask, known)], prev)
             crops = crops[:min(len(prev), cfg.max_persons)]
+            tracks = [tr for tr in list(self.tracker.tracks) if tr.fit is not None
+                      and tr.mask is not None and tr.mask.shape == det.depth.shape]
+            for c in crops:
+                best = max(tracks, key=lambda tr: int((tr.mask & c.mask).sum()))
+                nets[id(c)] = self._track_net(best, det.net)
         else:
             central = [c for c in crops if not c.nearest]
             if len(central) <= cfg.max_persons:
                 crops = (central + [c for c in crops if c.nearest])[:cfg.max_persons]
             else:
                 crops = central
-        for c, (x, lab, coords) in zip(crops, self._network(det.depth, crops, det.net)):
-            det.passes[id(c)] = (c, x, lab, coords,
-                                 det.net.lookup(lab, coords, body_pixels(x, lab)))
+        for c in crops:
+            net = nets.get(id(c), det.net)
+            ((x, lab, coords),) = self._network(det.depth, [c], net)
+            det.passes[id(c)] = (c, x, lab, coords, net.lookup(lab, coords, body_pixels(x, lab)),
+                                 net)
         det.ahead_ms = (time.perf_counter() - t0) * 1e3
 
     def _network(self, d, crops, net, passes: dict | None = None) -> list:
-        """The plain network passes of `crops` (one crop each: a pass is the same
-        made ahead or not), [(input, labels, coords)], taken from `passes`
+        """The plain network passes of `crops` by `net` (one crop each: a pass is the
+        same made ahead or not), [(input, labels, coords)], taken from `passes`
         (`Detection.passes`) where there."""
         out = []
         for c in crops:
             hit = (passes or {}).get(id(c))
-            if hit is not None and hit[0] is c:
+            if hit is not None and hit[0] is c and hit[5] is net:
                 out.append(hit[1:4])
                 continue
             x = network_input(crop_depth(d, c), c.median_depth)
@@ -673,6 +681,7 @@ class Reconstructor:
         plain = {}  # candidate -> its plain network pass, when the mirrored one is pending
         if len(crops) > cfg.max_persons or (cfg.tracking and len(crops) > 1):
             crops, x, lab, coords, plain = self._rank_candidates(d, crops, timings, net)
+        made_by = [net] * len(x)  # the network of each candidate's labels and coords
         track_of = dict(zip(map(id, crops), self.tracker.match(
             np.array([candidate_centre(c, K) for c in crops]).reshape(-1, 3),
             [c.mask for c in crops], t, exclude=seen)))
@@ -693,6 +702,7 @@ class Reconstructor:
                     x.append(None)
                     lab.append(None)
                     coords.append(None)
+                    made_by.append(None)
                 continue
             if i == len(x):
                 # The network runs on as many candidates as persons are still missing (one,
@@ -702,21 +712,22 @@ class Reconstructor:
                 tn = time.perf_counter()
                 n = 1 if cfg.tracking and self.tracker.tracks else cfg.max_persons - len(persons)
                 batch = crops[i:i + n]
+                bnet = self._track_net(tr, net) if n == 1 else net  # (n > 1: no tracks)
                 if cfg.flip_tta:
                     xb = np.stack([network_input(crop_depth(d, c), c.median_depth)
                                    for c in batch])
-                    lb, cb = net.predict(xb, flip_tta=True)
+                    lb, cb = bnet.predict(xb, flip_tta=True)
                 else:
-                    xb, lb, cb = zip(*self._network(
-                        d, batch, net, self._ahead if net is self._frame_net else None))
+                    xb, lb, cb = zip(*self._network(d, batch, bnet, self._ahead))
                 x.extend(xb)
                 lab.extend(lb)
                 coords.extend(cb)
+                made_by.extend([bnet] * len(batch))
                 timings['network'] += (time.perf_counter() - tn) * 1e3
             if i in plain:  # ranked on the plain pass: add the mirrored one (flip_tta)
                 tn = time.perf_counter()
                 (lb,), (cb,) = net.combine(
-                    plain.pop(i), net.raw(x[i][None], mirrored=True))
+                    plain.pop(i), made_by[i].raw(x[i][None], mirrored=True))
                 lab[i], coords[i] = lb, cb
                 timings['network'] += (time.perf_counter() - tn) * 1e3
             fg = body_pixels(x[i], lab[i])
@@ -724,15 +735,15 @@ class Reconstructor:
             if fg.sum() < MIN_BODY_PIXELS or fg.sum() < MIN_BODY_SHARE \
                     * max(int(x[i][1].sum()), 1) * self._blob_fraction(crop, x[i][1]):
                 if track_of.get(id(crop)) is None:
-                    self._not_a_person(crop, net, K, t)
+                    self._not_a_person(crop, made_by[i], K, t)
                 continue
             excess = 0.0 if noise is None else float(noise.excess(crop.median_depth))
             fitter = self.fitter.for_noise(excess)
             reject = scaled_reject_residual(cfg.reject_residual_m, excess)
             tc = time.perf_counter()
-            hit = self._ahead.get(id(crop)) if net is self._frame_net else None
+            hit = self._ahead.get(id(crop))
             vids = (hit[4] if hit is not None and hit[0] is crop and hit[2] is lab[i]
-                    else net.lookup(lab[i], coords[i], fg))
+                    else made_by[i].lookup(lab[i], coords[i], fg))
             rr, cc, _ = crop.sample_indices(d.shape)
             r, c = rr[fg], cc[fg]
             if persons and np.mean(claimed[r, c]) > MAX_CLAIMED:
@@ -748,13 +759,27 @@ class Reconstructor:
                 taken = seen | {id(tr) for c, tr in track_of.items()
                                 if tr is not None and c != id(crop)}
                 track = self.tracker.match(centre[None], [crop.mask], t, exclude=taken)[0]
+            use = self._track_net(track, net)
+            if use is not made_by[i]:  # a track found by its place: its own network
+                tn = time.perf_counter()
+                (lb,), (cb,) = use.predict(x[i][None], flip_tta=cfg.flip_tta)
+                lab[i], coords[i], made_by[i] = lb, cb, use
+                fg = body_pixels(x[i], lb)
+                if fg.sum() < MIN_BODY_PIXELS:
+                    continue
+                vids = use.lookup(lb, cb, fg)
+                r, c = rr[fg], cc[fg]
+                pts = pixel_points(r, c, d[r, c], K).astype(np.float32)
+                dt = time.perf_counter() - tn
+                timings['network'] += dt * 1e3
+                tf += dt
             score = body_score(crop, x[i][1] > 0, lab[i], d.shape)
             if track is None and score < MIN_COLD_SCORE:
                 # A new person in whom the network sees few body parts: a box or a piece of
                 # wall it labels as one or two (a tracked person found again half hidden
                 # may show few, and keeps its chance).
                 rejected.append(('score', -score, MIN_COLD_SCORE))
-                self._not_a_person(crop, net, K, t)
+                self._not_a_person(crop, made_by[i], K, t)
                 continue
             free = None
             if cfg.fit.free_space_weight > 0:  # looked for around the crop (+1/4 a side)
@@ -791,7 +816,7 @@ class Reconstructor:
                     # (multi_s31, multi_s35, seq_s5, val_s2, and the sample bag) no
                     # such blob of 59 ever gave a person that way, and each try is a
                     # network pass and a cold fit.
-                    self._not_a_person(crop, net, K, t)
+                    self._not_a_person(crop, made_by[i], K, t)
                     continue
                 if cfg.flip_tta and id(crop) not in plain_retried:
                     # The averaged plain and mirrored passes can mislead a fit the plain
@@ -800,9 +825,10 @@ class Reconstructor:
                     # 0.045): retry the candidate on the plain pass, right away.
                     plain_retried.add(id(crop))
                     tn = time.perf_counter()
-                    (lb,), (cb,) = net.predict(x[i][None], flip_tta=False)
+                    (lb,), (cb,) = made_by[i].predict(x[i][None], flip_tta=False)
                     timings['network'] += (time.perf_counter() - tn) * 1e3
-                    for seq, item in ((crops, crop), (x, x[i]), (lab, lb), (coords, cb)):
+                    for seq, item in ((crops, crop), (x, x[i]), (lab, lb), (coords, cb),
+                                      (made_by, made_by[i])):
                         seq.insert(i + 1, item)
                     plain = {k + (k > i): v for k, v in plain.items()}
                     continue
@@ -814,7 +840,7 @@ class Reconstructor:
             fit, vids = self._refine(fit, pts, vids, d, K, r, c, crop, fitter, free,
                                      0 if moved else cfg.fit.tracking_icp_rounds if tracked
                                      else cfg.fit.icp_rounds)
-            other = self._other(net) if cfg.both_networks else None
+            other = self._other(made_by[i]) if cfg.both_networks else None
             if other is not None and not tracked and (track is None or not cfg.tracking):
                 # A new person (with tracking: no track of theirs; a tracked person whose
                 # warm fit failed is fitted once, so that a slow frame, which breaks
@@ -832,7 +858,7 @@ class Reconstructor:
                                       reject, fit)
                 if alt is not None:
                     fit, vids, pts, r, c = alt
-                    lab[i], coords[i] = lb, cb
+                    lab[i], coords[i], made_by[i] = lb, cb, other
             seen_through = (see_through_share(fit.vertices, self.faces, d, K,
                                               fitter.cfg.free_space_margin)
                             if persons else 0.0)
@@ -851,6 +877,7 @@ class Reconstructor:
                 track = self.tracker.new(centre, t)
             if cfg.tracking:
                 track.keep_fit(fit, t, stamp_ns, tracked, moved)
+                track.net = made_by[i]
             else:
                 track.fit = None
             timings['fit'] += (time.perf_counter() - tf) * 1e3
@@ -878,6 +905,17 @@ class Reconstructor:
                 crop_labels=np.where(x[i][1] > 0, lab[i], 0).astype(np.uint8),
                 track_id=track.id, joint_confidence=conf, score=score))
         return persons
+
+    def _track_net(self, track, net: CorrespondenceNet) -> CorrespondenceNet:
+        """The network a tracked person's correspondences come from: the one whose
+        correspondences gave its last cold fit (`Track.net`; with `both_networks` the
+        one whose fit lay nearer the depth), else `net`. A person the original network
+        takes for a template pose it is not in is fitted from the broad one's labels
+        frame after frame, not only in the frame it was found (validation, a Kinect v1
+        broad-pose sequence: EXPERIMENTS.md)."""
+        if not self.config.tracking or track is None or track.net is None:
+            return net
+        return track.net
 
     def _rank_candidates(self, d, crops, timings, net):
         """Order person candidates (with tracking, or when there are more than persons
@@ -917,7 +955,7 @@ class Reconstructor:
             lab, coords = net.combine((probs, rc))
         else:
             x, lab, coords = zip(*self._network(
-                d, crops, net, self._ahead if net is self._frame_net else None))
+                d, crops, net, self._ahead))
         timings['network'] += (time.perf_counter() - tn) * 1e3
         score = [-body_score(c, xi[1] > 0, li, d.shape) for c, xi, li in zip(crops, x, lab)]
         # A blob seen through a gap of a nearer candidate goes after every other one.

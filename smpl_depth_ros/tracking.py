@@ -55,6 +55,8 @@ class Track:
         frames: frames it has been seen in.
         held: (fit, time) of its last tracked fit, the body moved into place in a frame
             whose warm fit fails (`held_body`), or None.
+        net: the correspondence network its fits take their correspondences from (set
+            by the pipeline; None: the frame's).
     """
 
     id: int
@@ -68,6 +70,7 @@ class Track:
     shapes: list | None = None
     frames: int = 0
     held: tuple | None = None
+    net: object = None
 
     def predicted(self, t: float) -> np.ndarray:
         return self.centre + self.velocity * max(0.0, t - self.last_seen)
