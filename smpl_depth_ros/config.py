@@ -143,7 +143,7 @@ class PipelineConfig:
     second_network: bool = param(True, 'when a body was seen but no fit explained it, retry '
                                  "the frame's candidates with the other shipped network (the "
                                  'broad or the original one; not with weights_path)', **_A)
-    both_networks: bool = param(True, 'a new person (without tracking: every person) is '
+    both_networks: bool = param(True, 'without tracking (single frames), every person is '
                                 'fitted with both shipped networks and the fit whose mesh '
                                 'lies nearer the depth is kept (twice a cold fit; not with '
                                 'weights_path)', **_A)

@@ -841,14 +841,16 @@ class Reconstructor:
                                      0 if moved else cfg.fit.tracking_icp_rounds if tracked
                                      else cfg.fit.icp_rounds)
             other = self._other(made_by[i]) if cfg.both_networks else None
-            if other is not None and not tracked and (track is None or not cfg.tracking):
-                # A new person (with tracking: no track of theirs; a tracked person whose
-                # warm fit failed is fitted once, so that a slow frame, which breaks
-                # every warm start, does not make the next slower): the other shipped
-                # network's correspondences are fitted too, and the fit whose mesh lies
-                # nearer the blob's points and less where the sensor looked through it is
-                # kept (`_other_fit`): each network gets some poses and sensors right that
-                # the other gets wrong.
+            if other is not None and not cfg.tracking:
+                # Single frames: the other shipped network's correspondences are fitted
+                # too, and the fit whose mesh lies nearer the blob's points and less where
+                # the sensor looked through it is kept (`_other_fit`): each network gets
+                # some poses and sensors right that the other gets wrong. Not with
+                # tracking: there a person's first fit starts their track, which keeps its
+                # network (`_track_net`; the third look gives the other one a person the
+                # first fails on), and on the three-person validation sequences the score
+                # picked worse fits of people half hidden, whose tracks kept them
+                # (EXPERIMENTS.md, 2026-12-07).
                 tn = time.perf_counter()
                 (lb,), (cb,) = other.predict(x[i][None], flip_tta=cfg.flip_tta)
                 dt = time.perf_counter() - tn
