@@ -669,6 +669,7 @@ class Reconstructor:
         added, their pixels claimed, their tracks in `seen`."""
         cfg = self.config
         net = net or self._frame_net
+        third = net is not self._frame_net  # the third look: the other network
         seen = set() if seen is None else seen
         t = self._clock(stamp_ns)
         persons = list(found or [])
@@ -712,7 +713,7 @@ class Reconstructor:
                 tn = time.perf_counter()
                 n = 1 if cfg.tracking and self.tracker.tracks else cfg.max_persons - len(persons)
                 batch = crops[i:i + n]
-                bnet = self._track_net(tr, net) if n == 1 else net  # (n > 1: no tracks)
+                bnet = self._track_net(tr, net, third) if n == 1 else net  # (n>1: no tracks)
                 if cfg.flip_tta:
                     xb = np.stack([network_input(crop_depth(d, c), c.median_depth)
                                    for c in batch])
@@ -759,7 +760,7 @@ class Reconstructor:
                 taken = seen | {id(tr) for c, tr in track_of.items()
                                 if tr is not None and c != id(crop)}
                 track = self.tracker.match(centre[None], [crop.mask], t, exclude=taken)[0]
-            use = self._track_net(track, net)
+            use = self._track_net(track, net, third)
             if use is not made_by[i]:  # a track found by its place: its own network
                 tn = time.perf_counter()
                 (lb,), (cb,) = use.predict(x[i][None], flip_tta=cfg.flip_tta)
@@ -908,16 +909,17 @@ class Reconstructor:
                 track_id=track.id, joint_confidence=conf, score=score))
         return persons
 
-    def _track_net(self, track, net: CorrespondenceNet) -> CorrespondenceNet:
+    def _track_net(self, track, net: CorrespondenceNet, third: bool = False
+                   ) -> CorrespondenceNet:
         """The network a tracked person's correspondences come from: the one whose
-        correspondences gave its last cold fit (`Track.net`; with `both_networks` the
-        one whose fit lay nearer the depth), else `net`. A person the original network
-        takes for a template pose it is not in is fitted from the broad one's labels
-        frame after frame, not only in the frame it was found (validation, a Kinect v1
-        broad-pose sequence: EXPERIMENTS.md)."""
+        correspondences gave its last cold fit (`Track.net`), else `net`, the frame's;
+        in the third look (`third`), the other one than that. A person the original
+        network takes for a template pose it is not in, found by the third look, is
+        fitted from the broad one's labels frame after frame, not only in the frame it was
+        found (validation, a Kinect v1 broad-pose sequence: EXPERIMENTS.md)."""
         if not self.config.tracking or track is None or track.net is None:
             return net
-        return track.net
+        return (self._other(track.net) or net) if third else track.net
 
     def _rank_candidates(self, d, crops, timings, net):
         """Order person candidates (with tracking, or when there are more than persons
