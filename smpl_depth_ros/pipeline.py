@@ -163,11 +163,18 @@ def known_blob(mask: np.ndarray, blobs) -> bool:
                (m | mask).sum() for m, _ in blobs)
 
 
-def by_overlap(crops, masks) -> list:
+def shared_pixels(crops, masks) -> np.ndarray:
+    """(len(crops), len(masks)): the pixels each crop's mask shares with each of `masks`."""
+    return np.array([[int((c.mask & m).sum()) for m in masks] for c in crops],
+                    np.int64).reshape(len(crops), len(masks))
+
+
+def by_overlap(crops, masks, shared: np.ndarray | None = None) -> list:
     """`crops` ordered by the most pixels they share with any of `masks` (the tracks'
-    last pixels), most first; ties keep their order."""
-    order = np.argsort([-max((c.mask & m).sum() for m in masks) for c in crops],
-                       kind='stable')
+    last pixels), most first; ties keep their order. `shared`: `shared_pixels(crops,
+    masks)` when already counted."""
+    shared = shared_pixels(crops, masks) if shared is None else shared
+    order = np.argsort(-shared.max(1), kind='stable')
     return [crops[i] for i in order]
 
 
@@ -459,20 +466,19 @@ class Reconstructor:
             return
         t0 = time.perf_counter()
         crops = det.crops
-        prev = [tr.mask for tr in list(self.tracker.tracks)
-                if tr.fit is not None and tr.mask is not None
-                and tr.mask.shape == det.depth.shape]
+        tracks = [tr for tr in list(self.tracker.tracks)
+                  if tr.fit is not None and tr.mask is not None
+                  and tr.mask.shape == det.depth.shape]
         nets = {}  # id(crop) -> the network of the track whose pixels it covers most
-        if cfg.tracking and prev:
+        if cfg.tracking and tracks:
             known = list(self._not_persons)
-            crops = by_overlap([c for c in crops if not c.behind and c.mask is not None
-                                and not known_blob(c.mask, known)], prev)
-            crops = crops[:min(len(prev), cfg.max_persons)]
-            tracks = [tr for tr in list(self.tracker.tracks) if tr.fit is not None
-                      and tr.mask is not None and tr.mask.shape == det.depth.shape]
-            for c in crops:
-                best = max(tracks, key=lambda tr: int((tr.mask & c.mask).sum()))
-                nets[id(c)] = self._track_net(best, det.net)
+            crops = [c for c in crops if not c.behind and c.mask is not None
+                     and not known_blob(c.mask, known)]
+            prev = [tr.mask for tr in tracks]
+            shared = shared_pixels(crops, prev)
+            for c, row in zip(crops, shared):
+                nets[id(c)] = self._track_net(tracks[int(np.argmax(row))], det.net)
+            crops = by_overlap(crops, prev, shared)[:min(len(prev), cfg.max_persons)]
         else:
             central = [c for c in crops if not c.nearest]
             if len(central) <= cfg.max_persons:
