@@ -266,6 +266,9 @@ SECOND_LOOK_EVERY = 10  # fewer persons found than wanted and a large blob left 
 MIN_BODY_PIXELS = 60  # network-foreground crop pixels needed to attempt a fit
 MIN_BODY_SHARE = 0.4  # a person: the network sees a body in this share of its blob's pixels
 MIN_PART_SHARE = 0.02  # body_score: a part counts when it covers this share of the body
+RANK_AREA_M2 = 0.15  # ranking candidates: a blob seen over less area than this (m^2; a
+                     # whole person 0.18 or more at any distance, a leg cut off by a
+                     # depth jump about 0.09) ranks by its share of it
 MIN_BEHIND = 0.3  # a blob behind a person is a tracked one with this share of its pixels
 MIN_ENCLOSED = 0.1  # ... or not skipped: a found person's pixels enclose less of it
                    # (net.preprocess.enclosed_share)

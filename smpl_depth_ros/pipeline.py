@@ -20,7 +20,7 @@ from smpl_depth_ros.config import (EXTRA_CANDIDATES, GIVE_UP, HELD_BODY_GAIN, MA
                                    MAX_SEE_THROUGH, MIN_BEHIND, MIN_BODY_PIXELS, MIN_ENCLOSED,
                                    MIN_BODY_SHARE, MIN_COLD_SCORE, MIN_PART_SHARE,
                                    NEAREST_CANDIDATES, NOT_PERSON_FRAMES, NOT_PERSON_IOU,
-                                   SECOND_LOOK_CANDIDATES, SECOND_LOOK_EVERY,
+                                   RANK_AREA_M2, SECOND_LOOK_CANDIDATES, SECOND_LOOK_EVERY,
                                    SEE_THROUGH_GAP_M, PipelineConfig)
 from smpl_depth_ros.fit import Fitter, backproject  # noqa: F401  (re-exported)
 from smpl_depth_ros.fit.freespace import FreeSpace, see_through_share, supporting_planes
@@ -154,6 +154,14 @@ def body_score(crop, valid: np.ndarray, labels: np.ndarray, image_shape) -> floa
     n = max(int(fg.sum()), 1)
     parts = int((np.bincount(labels[fg], minlength=2)[1:] >= MIN_PART_SHARE * n).sum())
     return n / max(int(blob.sum()), 1) * parts
+
+
+def seen_area(crop, d: np.ndarray, K: np.ndarray) -> float:
+    """The area (m^2) of the surface a candidate's blob shows the camera: each pixel of
+    its mask covers (z / fx) (z / fy). Unlike its pixel count, it does not shrink with
+    distance: a whole person shows 0.18-0.6 m^2 (seated, crouched, side-on, standing)."""
+    z = d[crop.mask]
+    return float((z.astype(np.float64) ** 2).sum() / (K[0, 0] * K[1, 1]))
 
 
 def known_blob(mask: np.ndarray, blobs) -> bool:
@@ -687,7 +695,7 @@ class Reconstructor:
         x, lab, coords = [], [], []  # network inputs and outputs, per candidate so far
         plain = {}  # candidate -> its plain network pass, when the mirrored one is pending
         if len(crops) > cfg.max_persons or (cfg.tracking and len(crops) > 1):
-            crops, x, lab, coords, plain = self._rank_candidates(d, crops, timings, net)
+            crops, x, lab, coords, plain = self._rank_candidates(d, K, crops, timings, net)
         made_by = [net] * len(x)  # the network of each candidate's labels and coords
         track_of = dict(zip(map(id, crops), self.tracker.match(
             np.array([candidate_centre(c, K) for c in crops]).reshape(-1, 3),
@@ -927,7 +935,7 @@ class Reconstructor:
             return net
         return (self._other(track.net) or net) if third else track.net
 
-    def _rank_candidates(self, d, crops, timings, net):
+    def _rank_candidates(self, d, K, crops, timings, net):
         """Order person candidates (with tracking, or when there are more than persons
         wanted).
 
@@ -936,8 +944,10 @@ class Reconstructor:
         (but the nearest ones kept beyond the most central, `Crop.nearest`, which follow
         them unranked) and they are ordered by how much of a body it sees: the share of
         the blob's own pixels it labels as body times the number of parts covering >= 2 %
-        of them (background objects get few parts); the most central candidate is not
-        always the person.
+        of them (background objects get few parts), times the share of a whole person's
+        area it shows when it shows less (`seen_area` under RANK_AREA_M2: a leg a depth
+        jump cut off the body fills its crop and the network sees a body in it); the most
+        central candidate is not always the person.
 
         Returns (crops, network inputs, labels, coords, plain): the outputs are filled for
         the candidates the network already ran on; ranking uses the plain pass only, so
@@ -967,7 +977,9 @@ class Reconstructor:
             x, lab, coords = zip(*self._network(
                 d, crops, net, self._ahead))
         timings['network'] += (time.perf_counter() - tn) * 1e3
-        score = [-body_score(c, xi[1] > 0, li, d.shape) for c, xi, li in zip(crops, x, lab)]
+        score = [-body_score(c, xi[1] > 0, li, d.shape)
+                 * min(1.0, seen_area(c, d, K) / RANK_AREA_M2)
+                 for c, xi, li in zip(crops, x, lab)]
         # A blob seen through a gap of a nearer candidate goes after every other one.
         order = np.lexsort((score, [c.behind for c in crops]))
         plain = ({k: (probs[i:i + 1], rc[i:i + 1]) for k, i in enumerate(order)}
