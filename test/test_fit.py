@@ -264,6 +264,30 @@ def test_free_space_marks_what_the_sensor_would_have_seen():
     assert len(FreeSpace(depth, K, ref_depth=2.0, box=(20, 10, 60, 70)).targets(verts)[0]) == 0
 
 
+def test_a_vertex_behind_the_person_hides_at_what_was_measured_at_its_own_depth():
+    """A 'person' at 3 m (their blob), a leg reaching back to 3.4 m that a depth jump cut
+    off the blob, and a far background at 7 m with no floor (a renderer's scene). A leg
+    vertex fitted a few pixels beside the leg's pixels is pulled to them, at its depth,
+    not onto the body 20 pixels away; a vertex at the person's depth beside the leg is
+    not hidden by it (the leg lies beyond it) and still goes to the body."""
+    K = np.array([[100.0, 0, 50], [0, 100.0, 40], [0, 0, 1]])
+    depth = np.full((120, 160), 7.0, np.float32)
+    depth[10:70, 30:50] = 3.0  # the person's blob
+    depth[40:70, 70:76] = 3.4  # the leg, beyond ref_depth + margin
+    blob = depth == 3.0
+    fs = FreeSpace(depth, K, ref_depth=3.0, own=blob)
+
+    def at(u, v, z):
+        return [(u - 50) * z / 100, (v - 40) * z / 100, z]
+    verts = np.array([at(80, 55, 3.42),   # beside the leg, at the leg's depth
+                      at(80, 55, 3.0)])   # same pixel, at the person's depth
+    ids, tgt = fs.targets(verts)
+    assert list(ids) == [0, 1]
+    # (within the 2-pixel sampling of the hiding region: 0.07 m at 3.4 m)
+    assert np.allclose(tgt[0], at(75, 55, 3.42), atol=0.07) and tgt[0, 2] == 3.42
+    assert np.allclose(tgt[1], at(49, 55, 3.0), atol=0.07)
+
+
 def test_see_through_share_counts_the_visible_side_the_sensor_looks_through(body):
     """A fitted body where the image shows it: nothing seen through; the same body where
     the image shows a wall 2 m behind it: all of its camera-facing side; half of the
