@@ -153,13 +153,13 @@ class FreeSpace:
                         MAX_LAYER).astype(np.int64)
         s = self.stride
         gy, gx = (v[ids] - self._v0) // s, (u[ids] - self._u0) // s
-        dist = np.empty(len(ids))
-        ty, tx = np.empty(len(ids), np.int64), np.empty(len(ids), np.int64)
-        for k in np.unique(layer):
-            sel = layer == k
-            dk, tyk, txk = self._hiding(int(k))
-            dist[sel], ty[sel], tx[sel] = (dk[gy[sel], gx[sel]], tyk[gy[sel], gx[sel]],
-                                           txk[gy[sel], gx[sel]])
+        # Layer 0's hiding places are every layer's: a deeper layer's own distance
+        # transform is needed only for its vertices still out of them.
+        dist, ty, tx = (a[gy, gx] for a in self._hiding(0))
+        deep = (layer > 0) & (dist > self.tolerance_px)
+        for k in np.unique(layer[deep]):
+            sel = deep & (layer == k)
+            dist[sel], ty[sel], tx[sel] = (a[gy[sel], gx[sel]] for a in self._hiding(int(k)))
         far = dist > self.tolerance_px  # 0 in front of the person: left alone
         ids, ty, tx, zt = ids[far], ty[far], tx[far], zt[far]
         tgt = np.stack([(tx - K[0, 2]) * zt / K[0, 0], (ty - K[1, 2]) * zt / K[1, 1], zt], 1)
