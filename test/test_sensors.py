@@ -641,6 +641,21 @@ def test_a_leg_cut_off_by_a_depth_jump_ranks_below_its_body():
     assert err < 150.0, err
 
 
+def test_a_person_over_a_far_background_with_no_floor_keeps_a_leg_cut_off_by_a_depth_jump():
+    """test/data/far_background_kinect_v1.npz: a person 2.7 m from a Kinect v1 camera,
+    exact depth, over a flat background 7 m away and no floor (a renderer's scene). A leg
+    a depth jump cuts off the person's blob hides, in free space, behind its own pixels,
+    not only behind the person's: before, the leg was dragged onto the body (58 mm from
+    the truth; now about 25)."""
+    from smpl_depth_ros.config import PipelineConfig
+    from smpl_depth_ros.pipeline import Reconstructor
+    f = np.load('test/data/far_background_kinect_v1.npz')
+    rec = Reconstructor(PipelineConfig(tracking=False, device='cpu', max_persons=1))
+    p = rec.process(f['depth_mm'] / 1000.0, f['K']).persons[0]
+    err = np.linalg.norm(p.vertices - f['vertices'], axis=1).mean() * 1e3
+    assert err < 40.0, err
+
+
 def test_both_networks_keep_the_fit_nearer_the_depth():
     """test/data/broad_pose_2m_kinect_v1.npz: a broad pose 2.3 m from a Kinect v1. The
     original network's fit is accepted but far off; with `both_networks` (the default) the
