@@ -288,6 +288,57 @@ def test_a_vertex_behind_the_person_hides_at_what_was_measured_at_its_own_depth(
     assert np.allclose(tgt[1], at(49, 55, 3.0), atol=0.07)
 
 
+def test_free_space_targets_are_the_nearest_hiding_cells_of_each_vertex_depth():
+    """Against the definition, cell by cell: on random scenes (depth steps, holes, an own
+    blob), every vertex whose measurement lies beyond it + margin and whose nearest hiding
+    cell on the stride grid is farther than the tolerance is returned, with a target that
+    far away; a cell hides a vertex at depth z when it is unmeasured, the person's own, or
+    measured no farther than ref + (k + 1) margin for z in layer k (or beyond the image)."""
+    from smpl_depth_ros.fit.freespace import MAX_LAYER
+    rng = np.random.default_rng(7)
+    K = np.array([[60.0, 0, 40], [0, 60.0, 30], [0, 0, 1]])
+    H, W, s, ref, m = 60, 80, 2, 3.0, 0.1
+    for _ in range(5):
+        depth = np.full((H, W), 6.0, np.float32)
+        for _ in range(6):  # boxes at assorted depths
+            v0, u0 = rng.integers(0, H - 8), rng.integers(0, W - 8)
+            depth[v0:v0 + rng.integers(4, 20), u0:u0 + rng.integers(4, 20)] = rng.uniform(2.5, 4.5)
+        depth[rng.random((H, W)) < 0.02] = 0.0
+        own = np.zeros((H, W), bool)
+        own[20:40, 30:45] = True
+        fs = FreeSpace(depth, K, ref_depth=ref, margin=m, own=own)
+        z = rng.uniform(2.6, 4.4, 400)
+        u, v = rng.uniform(0, W - 1, 400), rng.uniform(0, H - 1, 400)
+        verts = np.stack([(u - K[0, 2]) * z / K[0, 0], (v - K[1, 2]) * z / K[1, 1], z], 1)
+        ids, tgt = fs.targets(verts)
+        # the definition, by brute force over the stride grid and its ring beyond the image
+        gy, gx = np.mgrid[-1:H // s + 1, -1:W // s + 1]
+        inside = (gy >= 0) & (gy < H // s) & (gx >= 0) & (gx < W // s)
+        dg = np.zeros(gy.shape, np.float32)
+        dg[inside] = depth[::s, ::s].ravel()
+        og = np.zeros(gy.shape, bool)
+        og[inside] = own[::s, ::s].ravel()
+        expect = {}
+        for i, (x, y, zz) in enumerate(verts):
+            pu, pv = int(np.floor(K[0, 0] * x / zz + K[0, 2] + 0.5)), \
+                int(np.floor(K[1, 1] * y / zz + K[1, 2] + 0.5))
+            if not (0 <= pu < W and 0 <= pv < H) or depth[pv, pu] <= zz + m:
+                continue
+            k = int(np.clip(np.floor((zz - ref) / m), 0, MAX_LAYER))
+            hide = ~inside | (dg <= 0) | og | (dg <= ref + (k + 1) * m)
+            dist = np.sqrt(((gy[hide] - pv // s) ** 2 + (gx[hide] - pu // s) ** 2).min()) * s
+            if dist > fs.tolerance_px:
+                expect[i] = dist
+        assert sorted(ids.tolist()) == sorted(expect)
+        tu = K[0, 0] * tgt[:, 0] / tgt[:, 2] + K[0, 2]
+        tv = K[1, 1] * tgt[:, 1] / tgt[:, 2] + K[1, 2]
+        pu = np.floor(K[0, 0] * verts[ids, 0] / verts[ids, 2] + K[0, 2] + 0.5) // s * s
+        pv = np.floor(K[1, 1] * verts[ids, 1] / verts[ids, 2] + K[1, 2] + 0.5) // s * s
+        got = np.hypot(tu - pu, tv - pv)
+        assert np.allclose(got, [expect[i] for i in ids], atol=1e-6)
+        assert np.allclose(tgt[:, 2], verts[ids, 2])
+
+
 def test_see_through_share_counts_the_visible_side_the_sensor_looks_through(body):
     """A fitted body where the image shows it: nothing seen through; the same body where
     the image shows a wall 2 m behind it: all of its camera-facing side; half of the
