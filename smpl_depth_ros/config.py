@@ -111,6 +111,10 @@ class FitConfig:
                                      range=(0, 100), **_A)
     segment_init: bool = param(True, 'fitting: cold fits start from per-segment closed-form '
                                'rotations', **_A)
+    limb_init: bool = param(True, 'fitting: cold fits also start with each limb whose upper '
+                            'segment is barely seen oriented towards its seen lower '
+                            'segments, solved where the first start leaves them '
+                            'unexplained, the lower energy kept', **_A)
     flip_restart: bool = param(True, 'fitting: cold fits retry turned 180 degrees when the '
                                'fit is poor', **_A)
     flip_residual_m: float = param(0.06, 'fitting: median residual that triggers that retry '

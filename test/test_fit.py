@@ -576,6 +576,35 @@ def test_hidden_forearm_is_completed_not_left_straight(body):
     assert err[False] > 0.15 and err[True] < 0.5 * err[False], err
 
 
+def test_a_limb_seen_below_its_hidden_upper_segment_is_reached_not_left_hanging(body):
+    """A broad pose (the sampler's seed 27: the right leg lifted) with the right thigh
+    hidden, its shin and foot seen: the first start keeps the hip at rest (the thigh has
+    no target of its own), and the shin's and foot's targets then lie beyond the robust
+    kernel's reach, so the leg hangs 0.25 m off; the second start (`limb_init`) swings
+    the hip towards them, and its fit, of lower energy, is kept."""
+    ps = PoseSampler(body, mode='broad')
+    rng = np.random.default_rng(27)
+    pose, shape = ps.sample(rng, 1), sample_shape(body, rng, 1)
+    go, tr = placement(body, shape[0], rng.uniform(-np.pi, np.pi), 0.0, 0.0,
+                       np.array([0.0, 0.1, 3.0]))
+    with torch.no_grad():
+        V = body(torch.tensor(pose), torch.tensor(shape), torch.tensor(go)[None],
+                 torch.tensor(tr)[None]).vertices[0].numpy()
+    n = np.asarray(__import__('trimesh').Trimesh(V, body.faces_numpy(), process=False)
+                   .vertex_normals)
+    parts = body.part_labels.numpy()
+    leg = np.isin(parts, (10, 12, 14))  # upper_leg_r, lower_leg_r, foot_r
+    seen = np.flatnonzero(((n * V).sum(1) < 0) & (parts != 10))
+    assert np.isin(parts[seen], (12, 14)).sum() > 20  # the shin and foot are seen
+    err = {}
+    for on in (False, True):
+        r = Fitter(body, FitConfig(limb_init=on)).fit(V[seen], seen)
+        e = np.linalg.norm(r.vertices - V, axis=1)
+        err[on] = e[leg].mean()
+        assert e[~leg].mean() < 0.01
+    assert err[False] > 0.15 and err[True] < 0.02, err
+
+
 def test_shipped_pose_gaussian_is_the_committed_command_s_output(body, tmp_path):
     """data/pose_prior_anny.npz is what `export_pose_prior` makes (deterministic up to
     floating-point round-off, which differs between CPUs: 4e-8 at most was seen, where
