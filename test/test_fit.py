@@ -182,7 +182,9 @@ def test_tangent_weight_resists_correspondences_biased_inwards(body):
     """Correspondences pulled towards their part's centre (what a regressed coordinate
     does near a silhouette): fitting point to point, the body shrinks or shifts to meet
     them; weighting the along-surface residual less (tangent_weight) keeps the fit on the
-    observed surface."""
+    observed surface. (Without the limbs' second cold start: on this scene it rescues the
+    point-to-point fit's left forearm from a local minimum, 19.8 -> 10.7 mm, which is
+    not the mechanism under test.)"""
     from scipy.spatial import cKDTree
     _, V, _, front = _scene(body, 10)
     parts = body.part_labels.numpy()
@@ -192,7 +194,7 @@ def test_tangent_weight_resists_correspondences_biased_inwards(body):
         m = parts[front] == p
         inward = V[front[m]] + 0.3 * (V[pv].mean(0) - V[front[m]])
         ids[m] = pv[cKDTree(V[pv]).query(inward)[1]]
-    err = {a: _pve(Fitter(body, FitConfig(tangent_weight=a, **WEAK_PRIORS))
+    err = {a: _pve(Fitter(body, FitConfig(tangent_weight=a, limb_init=False, **WEAK_PRIORS))
                    .fit(V[front], ids), V) for a in (1.0, 0.5)}
     assert err[0.5] < 0.7 * err[1.0], err
 

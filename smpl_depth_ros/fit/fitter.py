@@ -276,8 +276,9 @@ class Fitter(FastSolver):
         validation frames: 39.4 -> 31.1 mm, EXPERIMENTS.md).
 
         Returns:
-            (state, masks): masks, one (N,) bool per joint so oriented (empty without
-            `limbs` or when no joint was), selects the targets it was oriented from.
+            (state, masks): masks, one (N,) bool per limb joint short of targets of its
+            own with enough below it (oriented from them with `limbs`, left at rest
+            without), selects those targets.
         """
         rig = self.rig
         rot, transl, shape = state
@@ -288,12 +289,14 @@ class Fitter(FastSolver):
         for j in rig.joint_order:
             m = seg == j
             if m.sum() < SEGMENT_MIN_TARGETS:
-                if not (limbs and self._limb[j]):
+                if not self._limb[j]:
                     continue
                 m = rig.desc[j, rig.jb[seg]] > 0  # the targets of the limb below j
                 if m.sum() < LIMB_MIN_TARGETS:
                     continue
                 masks.append(m)
+                if not limbs:
+                    continue
             G, x = rig.fk(rot, h0)
             b = rig.jb[j]
             src, dst = rp[m] - h0[b], pts[m] - transl - x[b]
@@ -388,11 +391,9 @@ class Fitter(FastSolver):
             rot[0], transl = self._initial_rigid(pts, ids, wts, targets_are_joints, shape)
             if self.cfg.segment_init and not targets_are_joints:
                 plain = (rot, transl, shape)
-                (rot, transl, shape), _ = self._initial_segments(plain, pts, ids, wts)
-                if self.cfg.limb_init:
+                (rot, transl, shape), short = self._initial_segments(plain, pts, ids, wts)
+                if self.cfg.limb_init and short:
                     limb_start = self._initial_segments(plain, pts, ids, wts, limbs=True)
-                    if not limb_start[1]:
-                        limb_start = None
         state, sq = (rot, transl, shape), None
         if solver == 'none':  # the initialisation alone (a benchmark reference)
             iters = 0
