@@ -583,7 +583,8 @@ def test_a_limb_seen_below_its_hidden_upper_segment_is_reached_not_left_hanging(
     hidden, its shin and foot seen: the first start keeps the hip at rest (the thigh has
     no target of its own), and the shin's and foot's targets then lie beyond the robust
     kernel's reach, so the leg hangs 0.25 m off; the second start (`limb_init`) swings
-    the hip towards them, and its fit, of lower energy, is kept."""
+    the hip towards them, and its fit, of lower energy, is kept. A fit the caller gives up
+    on early (`give_up_m`: a blob beside a person found) gets no second start."""
     ps = PoseSampler(body, mode='broad')
     rng = np.random.default_rng(27)
     pose, shape = ps.sample(rng, 1), sample_shape(body, rng, 1)
@@ -605,6 +606,8 @@ def test_a_limb_seen_below_its_hidden_upper_segment_is_reached_not_left_hanging(
         err[on] = e[leg].mean()
         assert e[~leg].mean() < 0.01
     assert err[False] > 0.15 and err[True] < 0.02, err
+    r = Fitter(body, FitConfig()).fit(V[seen], seen, give_up_m=1.0)  # never given up
+    assert np.linalg.norm(r.vertices - V, axis=1)[leg].mean() > 0.15
 
 
 def test_shipped_pose_gaussian_is_the_committed_command_s_output(body, tmp_path):

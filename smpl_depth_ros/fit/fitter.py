@@ -346,7 +346,8 @@ class Fitter(FastSolver):
                 refit to nearest-vertex correspondences uses cfg.icp_tangent_weight).
             give_up_m: a cold fit (the fast solver) whose first run leaves a median target
                 residual above this is returned as it is: no turned restart, no free
-                space, no completion (a blob no body explains, not worth the rest).
+                space, no completion (a blob no body explains, not worth the rest); with
+                it, no second start for the limbs either.
 
         Returns:
             FitResult.
@@ -392,7 +393,9 @@ class Fitter(FastSolver):
             if self.cfg.segment_init and not targets_are_joints:
                 plain = (rot, transl, shape)
                 (rot, transl, shape), short = self._initial_segments(plain, pts, ids, wts)
-                if self.cfg.limb_init and short:
+                if self.cfg.limb_init and short and give_up_m is None:
+                    # (Not for a blob the caller gives up on early, one beside a person
+                    # found: a second start lets a piece of the scene pass as a person.)
                     limb_start = self._initial_segments(plain, pts, ids, wts, limbs=True)
         state, sq = (rot, transl, shape), None
         if solver == 'none':  # the initialisation alone (a benchmark reference)
