@@ -36,6 +36,16 @@ def _scene(body, seed, with_params=False):
     return rng, V, out.joints[0].numpy(), front
 
 
+def _posed_mesh(body, pose, shape, go, tr):
+    """The posed mesh's vertices (V, 3) and vertex normals of one body."""
+    with torch.no_grad():
+        V = body(torch.tensor(pose), torch.tensor(shape), torch.tensor(go)[None],
+                 torch.tensor(tr)[None]).vertices[0].numpy()
+    n = np.asarray(__import__('trimesh').Trimesh(V, body.faces_numpy(), process=False)
+                   .vertex_normals)
+    return V, n
+
+
 # Weaker pose priors than the defaults (fit.lambda_pose_l2 1e-7, no extra
 # pull of the collars and wrists): the tests of one mechanism against corrupted
 # correspondences use them, since the priors resist such errors too and would hide what
@@ -562,11 +572,7 @@ def test_hidden_forearm_is_completed_not_left_straight(body):
     pose = ps.to_model(ps.template('arms_crossed'))[None]
     shape = body.shape_mean.numpy().astype(np.float32)[None]
     go, tr = placement(body, shape[0], 0.3, 0.0, 0.0, np.array([0.0, 0.1, 3.0]))
-    with torch.no_grad():
-        V = body(torch.tensor(pose), torch.tensor(shape), torch.tensor(go)[None],
-                 torch.tensor(tr)[None]).vertices[0].numpy()
-    n = np.asarray(__import__('trimesh').Trimesh(V, body.faces_numpy(), process=False)
-                   .vertex_normals)
+    V, n = _posed_mesh(body, pose, shape, go, tr)
     parts = body.part_labels.numpy()
     fore = np.isin(parts, (6, 8))  # lower_arm_r, hand_r
     seen = np.flatnonzero(((n * V).sum(1) < 0) & ~fore)
@@ -590,11 +596,7 @@ def test_a_limb_seen_below_its_hidden_upper_segment_is_reached_not_left_hanging(
     pose, shape = ps.sample(rng, 1), sample_shape(body, rng, 1)
     go, tr = placement(body, shape[0], rng.uniform(-np.pi, np.pi), 0.0, 0.0,
                        np.array([0.0, 0.1, 3.0]))
-    with torch.no_grad():
-        V = body(torch.tensor(pose), torch.tensor(shape), torch.tensor(go)[None],
-                 torch.tensor(tr)[None]).vertices[0].numpy()
-    n = np.asarray(__import__('trimesh').Trimesh(V, body.faces_numpy(), process=False)
-                   .vertex_normals)
+    V, n = _posed_mesh(body, pose, shape, go, tr)
     parts = body.part_labels.numpy()
     leg = np.isin(parts, (10, 12, 14))  # upper_leg_r, lower_leg_r, foot_r
     seen = np.flatnonzero(((n * V).sum(1) < 0) & (parts != 10))
