@@ -273,7 +273,7 @@ class Fitter(FastSolver):
         at rest: a thigh hidden behind the folded body then swings its seen shin and foot
         towards their points instead of leaving the leg hanging at rest, out of the
         robust kernel's reach (measured with true correspondences on the broad-pose
-        validation frames: 39.4 -> 31.1 mm, EXPERIMENTS.md).
+        validation frames: 39.4 -> 32.8 mm, EXPERIMENTS.md).
 
         Returns:
             (state, masks): masks, one (N,) bool per limb joint short of targets of its
@@ -393,7 +393,7 @@ class Fitter(FastSolver):
             if self.cfg.segment_init and not targets_are_joints:
                 plain = (rot, transl, shape)
                 (rot, transl, shape), short = self._initial_segments(plain, pts, ids, wts)
-                if self.cfg.limb_init and short and give_up_m is None:
+                if self.cfg.limb_init and short and give_up_m is None and solver == 'fast':
                     # (Not for a blob the caller gives up on early, one beside a person
                     # found: a second start lets a piece of the scene pass as a person.)
                     limb_start = self._initial_segments(plain, pts, ids, wts, limbs=True)
