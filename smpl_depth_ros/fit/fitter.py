@@ -261,42 +261,47 @@ class Fitter(FastSolver):
         root = h0[rig.jb[0]]
         return R, t + R @ root - root
 
-    def _initial_segments(self, state, pts, ids, wts, limbs: bool = False):
+    def _initial_segments(self, state, pts, ids, wts, limbs: dict | None = None):
         """Per-segment closed-form initialisation (in the spirit of smplfitter): parents
         first, each fitted joint's world rotation is the GM-reweighted rotation-only
         Kabsch of its segment's rest points about the joint onto the observed points
         (the joint position follows from the parents). Segments with too few points
         keep their rest rotation; the solver refines everything afterwards.
 
-        With `limbs`, a limb joint (LIMB_JOINTS) whose segment has too few targets is
+        The second start: given `limbs` (the masks this pass returned) and its `state`,
+        each of those limb joints (LIMB_JOINTS), short of targets of its own, is
         oriented from the targets of its segment and every segment below it, taken rigid
-        at rest: a thigh hidden behind the folded body then swings its seen shin and foot
-        towards their points instead of leaving the leg hanging at rest, out of the
-        robust kernel's reach (measured with true correspondences on the broad-pose
-        validation frames: 39.4 -> 32.8 mm, EXPERIMENTS.md).
+        at rest, and the joints below it again from theirs (the others keep theirs): a
+        thigh hidden behind the folded body then swings its seen shin and foot towards
+        their points instead of leaving the leg hanging at rest, out of the robust
+        kernel's reach (measured with true correspondences on the broad-pose validation
+        frames: 39.4 -> 32.8 mm, EXPERIMENTS.md).
 
         Returns:
-            (state, masks): masks, one (N,) bool per limb joint short of targets of its
-            own with enough below it (oriented from them with `limbs`, left at rest
-            without), selects those targets.
+            (state, masks): masks, {joint: (N,) bool} for each limb joint short of
+            targets of its own with enough below it (left at rest without `limbs`),
+            selects those targets.
         """
         rig = self.rig
         rot, transl, shape = state
         _, rp, _, h0, _, _ = self._problem(shape, ids, False)
         seg = rig.segment_of_vertex[ids]
         rot = rot.copy()
-        masks = []
+        masks = {}
         for j in rig.joint_order:
-            m = seg == j
-            if m.sum() < SEGMENT_MIN_TARGETS:
-                if not self._limb[j]:
+            if limbs is not None:  # the second start: the limbs' joints only
+                if j in limbs:
+                    m = masks[j] = limbs[j]
+                elif not any(rig.desc[k, rig.jb[j]] for k in limbs):
                     continue
-                m = rig.desc[j, rig.jb[seg]] > 0  # the targets of the limb below j
-                if m.sum() < LIMB_MIN_TARGETS:
+                elif (m := seg == j).sum() < SEGMENT_MIN_TARGETS:
                     continue
-                masks.append(m)
-                if not limbs:
-                    continue
+            elif (m := seg == j).sum() < SEGMENT_MIN_TARGETS:
+                if self._limb[j]:
+                    limb = rig.desc[j, rig.jb[seg]] > 0  # the targets of the limb below j
+                    if limb.sum() >= LIMB_MIN_TARGETS:
+                        masks[j] = limb
+                continue
             G, x = rig.fk(rot, h0)
             b = rig.jb[j]
             src, dst = rp[m] - h0[b], pts[m] - transl - x[b]
@@ -391,12 +396,13 @@ class Fitter(FastSolver):
             rot = np.repeat(np.eye(3)[None], body.num_pose_joints + 1, 0)
             rot[0], transl = self._initial_rigid(pts, ids, wts, targets_are_joints, shape)
             if self.cfg.segment_init and not targets_are_joints:
-                plain = (rot, transl, shape)
-                (rot, transl, shape), short = self._initial_segments(plain, pts, ids, wts)
+                (rot, transl, shape), short = self._initial_segments((rot, transl, shape),
+                                                                     pts, ids, wts)
                 if self.cfg.limb_init and short and give_up_m is None and solver == 'fast':
                     # (Not for a blob the caller gives up on early, one beside a person
                     # found: a second start lets a piece of the scene pass as a person.)
-                    limb_start = self._initial_segments(plain, pts, ids, wts, limbs=True)
+                    limb_start = self._initial_segments((rot, transl, shape), pts, ids,
+                                                        wts, limbs=short)
         state, sq = (rot, transl, shape), None
         if solver == 'none':  # the initialisation alone (a benchmark reference)
             iters = 0
@@ -416,7 +422,7 @@ class Fitter(FastSolver):
                 return self._result(state, (pts, ids, wts, sq), pts_all, ids_all,
                                     targets_are_joints, iters, t0, solver, warm)
             if limb_start is not None and max(
-                    np.median(sq[m]) for m in limb_start[1]) > LIMB_EXPLAINED_M ** 2:
+                    np.median(sq[m]) for m in limb_start[1].values()) > LIMB_EXPLAINED_M ** 2:
                 # A limb's targets the first start left unexplained: solve from the
                 # second start too, and keep the lower energy (as the turned restart).
                 alt, en2, it2, sq2 = self._levenberg_marquardt(
