@@ -197,6 +197,11 @@ class PipelineConfig:
                         "'auto' (measured from the frames), a preset (e.g. 'realsense_d435', "
                         "'oak_d', 'azure_kinect_nfov', 'kinect_v1') or 'none' (fixed "
                         'thresholds)', choices=_sensor_choices)
+    denoise: bool = param(True, 'average each depth pixel with its neighbours within 2.5 '
+                          'sigma of it where the sensor noise exceeds what the thresholds '
+                          'were tuned for (a stereo camera far away; the window grows with '
+                          'the excess, up to 7x7); a Kinect v1 or time-of-flight camera is '
+                          'left as it is')
     fit: FitConfig = field(default_factory=FitConfig)
 
     def with_overrides(self, **kw) -> 'PipelineConfig':

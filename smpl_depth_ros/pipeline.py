@@ -22,6 +22,7 @@ from smpl_depth_ros.config import (EXTRA_CANDIDATES, GIVE_UP, HELD_BODY_GAIN, MA
                                    NEAREST_CANDIDATES, NOT_PERSON_FRAMES, NOT_PERSON_IOU,
                                    RANK_AREA_M2, SECOND_LOOK_CANDIDATES, SECOND_LOOK_EVERY,
                                    SEE_THROUGH_GAP_M, PipelineConfig)
+from smpl_depth_ros.denoise import smooth
 from smpl_depth_ros.fit import Fitter, backproject  # noqa: F401  (re-exported)
 from smpl_depth_ros.fit.freespace import FreeSpace, see_through_share, supporting_planes
 from smpl_depth_ros.net.infer import CorrespondenceNet, broad_weights
@@ -432,6 +433,8 @@ class Reconstructor:
             else:
                 K = np.asarray(lens.P, np.float64)
         noise = self._noise_for(d, K)
+        if cfg.denoise:
+            d = smooth(d, noise)
         report: dict = {}
         crops = find_persons(d, K, cfg.depth_min, cfg.depth_max, cfg.min_person_pixels,
                              max_persons=max(cfg.max_persons, 1) + EXTRA_CANDIDATES,

@@ -1,6 +1,7 @@
-"""Write the stored test frames of test/data (a stereo person far away, a crouch).
+"""Write the stored test frames of test/data (a stereo person far away, a crouch, a
+stereo person seen through noisier disparity than the preset's).
 
-    python -m smpl_depth_ros.tools.make_test_frames --out test/data
+    python -m smpl_depth_ros.tools.make_test_frames --out test/data [--only NAME]
 
 Each is one synthetic frame (anny body, random room, the sensor's noise model) saved as
 `depth_mm` (uint16, the 16UC1 image), `K`, `vertices` (the true mesh, camera frame,
@@ -22,6 +23,11 @@ FRAMES = {
     # a deep squat / crouch seen by a Kinect v1 at 2-3 m
     'crouch_kinect_v1': dict(sensor='kinect_v1', depth=(2.0, 3.0), poses='broad', seed=32,
                              posture='squat_deep'),
+    # a D435 (848x480) person at 3.0-3.5 m through a noisier unit than the preset: the
+    # disparity error per pixel (no block-matching correlation) at 0.15 px RMS
+    'stereo_d435_noisy': dict(sensor='realsense_d435', depth=(3.0, 3.5), poses='templates',
+                              seed=33, posture=None,
+                              noise=dict(white_share=1.0, subpixel_sigma_px=0.15)),
 }
 
 
@@ -42,6 +48,8 @@ def make(name: str, body) -> dict:
     from smpl_depth_ros.synth.sensors import SENSORS
     spec = FRAMES[name]
     sensor = SENSORS[spec['sensor']]
+    if spec.get('noise'):
+        sensor = replace(sensor, params=replace(sensor.params, **spec['noise']))
     sampler = PoseSampler(body, mode=spec['poses'])
     if spec['posture']:
         sampler = _Posture(sampler, spec['posture'])
@@ -61,10 +69,11 @@ def make(name: str, body) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog='make_test_frames', description=__doc__.split('\n')[0])
     ap.add_argument('--out', default='test/data')
+    ap.add_argument('--only', choices=sorted(FRAMES), help='write this frame only')
     args = ap.parse_args(argv)
     from smpl_depth_ros.body import load_body_model
     body = load_body_model('anny')
-    for name in FRAMES:
+    for name in [args.only] if args.only else FRAMES:
         path = os.path.join(args.out, f'{name}.npz')
         np.savez_compressed(path, **make(name, body))
         print(path)
