@@ -76,6 +76,24 @@ def test_stereo_noise_is_spatially_correlated_kinect_noise_is_not():
     assert abs(_autocorr(k - k.mean(), 1)) < 0.05
 
 
+def test_a_presets_noise_fields_can_be_set_for_a_noisier_or_other_unit():
+    """`Sensor.with_noise` (the sweep's `--noise`): a D435 with per-pixel disparity error
+    at 0.15 px has no spatial correlation and its sigma scales by 0.15 / 0.08; a field a
+    preset lacks leaves it as it is; the sweep refuses a field no swept sensor has."""
+    from smpl_depth_ros.tools import sweep
+    base = SENSORS['realsense_d435']
+    s = base.with_noise(white_share=1.0, subpixel_sigma_px=0.15)
+    assert (s.params.white_share, s.params.subpixel_sigma_px) == (1.0, 0.15)
+    assert s.camera == base.camera and s.params.baseline_m == base.params.baseline_m
+    r, clean = _plane(s, 2.0)
+    e = np.where(r.depth > 0, r.depth - clean, 0.0).astype(np.float64)
+    assert abs(_autocorr(e, int(base.params.correlation_px))) < 0.05
+    assert float(s.sigma(3.0)) == pytest.approx(float(base.sigma(3.0)) * 0.15 / 0.08,
+                                                rel=0.05)
+    assert SENSORS['kinect_v1'].with_noise(white_share=1.0) is SENSORS['kinect_v1']
+    assert sweep.main(['--sensors', 'kinect_v1', '--noise', 'white_share=1']) == 2
+
+
 def test_stereo_disparity_is_quantised_and_edges_lose_pixels():
     s = SENSORS['oak_d']
     H, W = s.camera.height, s.camera.width

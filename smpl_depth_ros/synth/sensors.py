@@ -151,6 +151,12 @@ class Sensor:
         """The same noise model on other intrinsics (another resolution or unit)."""
         return replace(self, camera=camera)
 
+    def with_noise(self, **fields) -> 'Sensor':
+        """The same camera with some of its noise model's fields set (those it has; the
+        others are ignored, so one set of overrides serves every class of preset)."""
+        own = {k: v for k, v in fields.items() if hasattr(self.params, k)}
+        return replace(self, params=replace(self.params, **own)) if own else self
+
     def sigma(self, z, theta=0.0, strength: float = 1.0) -> np.ndarray:
         """Expected axial noise (metres, 1 sigma) at depth z (m), incidence theta (rad),
         for this preset's own resolution."""

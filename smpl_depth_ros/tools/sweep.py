@@ -2,7 +2,8 @@
 
     sweep --json results/sweep_test.json --plot results/sweep_test.png \\
           [--sensors all] [--bins 1.0 5.0 0.5] [--frames 10] [--seed 101] \\
-          [--poses templates|broad|mocap] [--lens azure_kinect] [-p NAME=VALUE ...]
+          [--poses templates|broad|mocap] [--lens azure_kinect] [--strength S] \\
+          [--noise FIELD=VALUE ...] [-p NAME=VALUE ...]
 
 For every sensor preset (synth.sensors: its camera and noise model) and every depth bin,
 the same `--frames` subjects (shape, pose, yaw: frame i draws from the generator seeded
@@ -18,7 +19,11 @@ sensor's measured noise model; with `--poses mocap`, each frame's PVE per motion
 0.3 m inside it) are left out. JSON out, and a PNG with PVE and recall against distance,
 one line per sensor.
 Validation and test sweeps differ only by `--seed`. `--lens` makes every frame the image
-of a lens-distorted camera, as its driver publishes it (`sweep_frames`).
+of a lens-distorted camera, as its driver publishes it (`sweep_frames`). `--strength`
+scales every noise model; `--noise` sets a field of the presets' noise models (those that
+have it: `synth.sensors.StereoParams`, `TofParams`, `noise.NoiseParams`), e.g. `--noise
+white_share=1 --noise subpixel_sigma_px=0.15`: a stereo unit noisier than the preset,
+its error per pixel (an independent simulator's formula, sigma = z^2 sigma_d / (f b)).
 """
 from __future__ import annotations
 
@@ -65,9 +70,10 @@ def sweep_frames(body, sampler, sensor, lo, hi, n, seed, strength=1.0, lens=None
 
 
 def run_sweep(sensors, bins, frames, seed, poses, overrides, strength=1.0, progress=None,
-              lens=None):
+              lens=None, noise=None):
     """The sweep's rows: one dict per (sensor, bin) with its metrics (see module doc);
-    `lens`: see `sweep_frames`."""
+    `lens`: see `sweep_frames`; `noise`: noise-model fields set on every preset that has
+    them (`Sensor.with_noise`)."""
     from smpl_depth_ros.body import load_body_model
     from smpl_depth_ros.config import PipelineConfig
     from smpl_depth_ros.params import from_params
@@ -83,7 +89,7 @@ def run_sweep(sensors, bins, frames, seed, poses, overrides, strength=1.0, progr
     faces = body.faces_numpy()
     rows = []
     for name in sensors:
-        sensor = SENSORS[name]
+        sensor = SENSORS[name].with_noise(**(noise or {}))
         rec = Reconstructor(cfg, body=body)
         cam = sensor.camera
         for lo, hi in bins:
@@ -242,6 +248,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument('--strength', type=float, default=1.0, help='noise strength')
     ap.add_argument('--lens', default=None, help="a synth.sensors.LENSES name: the frames "
                     "are that lens's own (distorted) images, with its camera_info lens")
+    ap.add_argument('--noise', action='append', default=[], metavar='FIELD=VALUE',
+                    help='set a field of the presets\' noise models (those that have it), '
+                    'e.g. white_share=1')
     ap.add_argument('--json', default=None)
     ap.add_argument('--plot', default=None, help='PNG of PVE and recall against distance')
     ap.add_argument('-p', '--param', action='append', default=[], metavar='NAME=VALUE',
@@ -263,6 +272,17 @@ def main(argv=None) -> int:
         print(f'sweep: unknown lens {args.lens!r}; presets: {sorted(LENSES)}',
               file=sys.stderr)
         return 2
+    noise = {}
+    for item in args.noise:
+        key, sep, value = item.partition('=')
+        try:
+            noise[key] = int(value) if value.lstrip('-').isdigit() else float(value)
+        except ValueError:
+            sep = ''
+        if not sep or not any(hasattr(SENSORS[n].params, key) for n in names):
+            print(f'sweep: --noise {item!r}: FIELD=number, a field of the noise model of '
+                  'at least one sensor swept', file=sys.stderr)
+            return 2
     f, t, s = args.bins
     if not (0 < f < t and s > 0) or args.frames < 1:
         print('sweep: --bins needs 0 < FROM < TO and STEP > 0; --frames >= 1',
@@ -274,7 +294,7 @@ def main(argv=None) -> int:
         overrides = parse_overrides(args.param)
         t0 = time.perf_counter()
         rows = run_sweep(names, bins, args.frames, args.seed, args.poses, overrides,
-                         args.strength, lens=args.lens,
+                         args.strength, lens=args.lens, noise=noise,
                          progress=lambda r: print(
                              f"{r['sensor']:26s} {r['depth'][0]:.1f}-{r['depth'][1]:.1f} m "
                              f"rec {r['reconstructed']:.2f} pve {r['pve_mm']} surf "
@@ -284,7 +304,8 @@ def main(argv=None) -> int:
         print(f'sweep: {e}', file=sys.stderr)
         return 2
     out = dict(summary=summarise(rows), rows=rows, seed=args.seed, poses=args.poses,
-               frames=args.frames, strength=args.strength, lens=args.lens, params=overrides,
+               frames=args.frames, strength=args.strength, lens=args.lens, noise=noise,
+               params=overrides,
                seconds=round(time.perf_counter() - t0, 1),
                date=time.strftime('%Y-%m-%d'))
     if args.plot:
