@@ -201,7 +201,7 @@ class PipelineConfig:
                           'sigma of it where the sensor noise exceeds what the thresholds '
                           'were tuned for (a stereo camera far away; the window grows with '
                           'the excess, up to 7x7); a Kinect v1 or time-of-flight camera is '
-                          'left as it is', **_A)
+                          'left as it is beyond about 1.5 m', **_A)
     fit: FitConfig = field(default_factory=FitConfig)
 
     def with_overrides(self, **kw) -> 'PipelineConfig':

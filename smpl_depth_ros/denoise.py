@@ -15,9 +15,13 @@ that) is kept, a surface's noise is averaged. The window is as wide as it must b
 bring per-pixel noise down to what the defaults were tuned for, EXCESS_OVER x a Kinect
 v1's sigma at that depth: radius r = ceil((sigma / target - 1) / 2) each way (a
 (2r + 1)^2 window divides white noise by 2r + 1), at most MAX_RADIUS, from a noise
-SMOOTH_FROM times the target on. Below that (a Kinect v1, time of flight) nothing
-changes: the `auto` estimate of a Kinect v1's own frames reads up to 1.14 times the
-target over a run (up to 1.26 in single frames at close range). Noise correlated over a
+SMOOTH_FROM times the target on. Below that nothing changes: the `auto` estimate of a
+Kinect v1's own frames reads up to 1.14 times the target over a run of people at 1-5 m
+(1.26 in single frames at 1.2 m), so a Kinect v1 or a time-of-flight camera is left as
+it is beyond about 1.5 m; nearer, where their estimate holds the person's own curved
+surfaces and a Kinect v1's sigma is small, it can read 1.3-1.7 and a 3 x 3 window is
+applied (the sensor sweep's 1.0-1.5 m bins: Kinect v1 59.5 -> 59.2 mm, Kinect v2 34.5
+-> 31.9). Noise correlated over a
 few pixels (block matching) is averaged less, but helped too (`docs/EXPERIMENTS.md`).
 """
 from __future__ import annotations
