@@ -37,23 +37,26 @@ TABLE_STEP_M = 0.01  # sigma and radius are looked up per centimetre of depth
 
 
 def _tables(depth: np.ndarray, noise: NoiseModel) -> tuple[np.ndarray, np.ndarray]:
-    """Per pixel of `depth`, sigma (float32) and the window radius its noise asks for (0:
-    left as it is; int8, 0 where invalid), from tables over depth in TABLE_STEP_M steps."""
-    valid = depth > 0
-    zmax = float(depth.max()) if valid.any() else 0.0
+    """sigma (float32) and the window radius its noise asks for (int8; 0: left as it is,
+    and at index 0, invalid pixels), per TABLE_STEP_M of depth up to `depth`'s largest."""
+    zmax = float(depth.max()) if depth.size else 0.0
     zs = np.maximum(np.arange(0.0, zmax + 2 * TABLE_STEP_M, TABLE_STEP_M), TABLE_STEP_M)
     sig = noise(zs)
     ratio = sig / (EXCESS_OVER * kinect_v1_sigma(zs))
     r = np.clip(np.ceil((ratio - 1.0) / 2.0), 0, MAX_RADIUS).astype(np.int8)
     r[ratio < SMOOTH_FROM] = 0
-    r[0] = 0  # invalid pixels
-    idx = np.rint(np.where(valid, depth, 0.0) / TABLE_STEP_M).astype(np.int32)
-    return sig.astype(np.float32)[idx], r[idx]
+    r[0] = 0
+    return sig.astype(np.float32), r
+
+
+def _index(depth: np.ndarray) -> np.ndarray:
+    """Each pixel's row of the `_tables` (0 for invalid pixels)."""
+    return np.rint(np.where(depth > 0, depth, 0.0) / TABLE_STEP_M).astype(np.int32)
 
 
 def radius_map(depth: np.ndarray, noise: NoiseModel) -> np.ndarray:
     """Per pixel, the window radius its noise asks for (0: left as it is; int8)."""
-    return _tables(depth, noise)[1]
+    return _tables(depth, noise)[1][_index(depth)]
 
 
 def _pass(z: np.ndarray, r: np.ndarray, thr: np.ndarray, axis: int) -> np.ndarray:
@@ -84,7 +87,11 @@ def smooth(depth: np.ndarray, noise: NoiseModel | None) -> np.ndarray:
     (see the module doc); the same array when nothing needs it. Validity is unchanged."""
     if noise is None or not noise.z:
         return depth
-    sig, r = _tables(depth, noise)
+    sig_t, r_t = _tables(depth, noise)
+    if not r_t.any():  # (a quiet sensor: no depth in view asks for a window)
+        return depth
+    idx = _index(depth)
+    sig, r = sig_t[idx], r_t[idx]
     if not r.any():
         return depth
     rows = np.flatnonzero(r.any(axis=1))

@@ -47,9 +47,7 @@ def make(name: str, body) -> dict:
     from smpl_depth_ros.synth.poses import PoseSampler
     from smpl_depth_ros.synth.sensors import SENSORS
     spec = FRAMES[name]
-    sensor = SENSORS[spec['sensor']]
-    if spec.get('noise'):
-        sensor = replace(sensor, params=replace(sensor.params, **spec['noise']))
+    sensor = SENSORS[spec['sensor']].with_noise(**spec.get('noise', {}))
     sampler = PoseSampler(body, mode=spec['poses'])
     if spec['posture']:
         sampler = _Posture(sampler, spec['posture'])
