@@ -283,8 +283,9 @@ MIN_ENCLOSED = 0.1  # ... or not skipped: a found person's pixels enclose less o
                    # (net.preprocess.enclosed_share)
 MAX_SEE_THROUGH = 0.3  # a person's fit: at most this share of its visible side seen through
                        # (fit.freespace.see_through_share; persons <= 0.26, boxes 0.25-0.9)
-MIN_COLD_SCORE = 2.0  # a new person (no track yet): at least this body_score (persons
-                      # 5-13, tracked ones found again half hidden from 1.9; boxes 0.4-1.6)
+MIN_COLD_SCORE = 3.4  # a new person (no track yet): at least this body_score (persons
+                      # 3.7-13, tracked ones found again half hidden from 1.9; boxes and
+                      # scene pieces fitted as a body 0.4-3.2)
 NOT_PERSON_IOU = 0.8  # tracking: a candidate whose blob overlaps one the network saw no body
                       # in (MIN_COLD_SCORE) by this intersection over union is that blob ...
 NOT_PERSON_FRAMES = 10  # ... and is skipped for this many frames after that verdict

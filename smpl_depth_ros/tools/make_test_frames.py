@@ -1,12 +1,14 @@
 """Write the stored test frames of test/data (a stereo person far away, a crouch, a
-stereo person seen through noisier disparity than the preset's).
+stereo person seen through noisier disparity than the preset's, a time-of-flight person
+beside a piece of the scene the network sees a few body parts in).
 
     python -m smpl_depth_ros.tools.make_test_frames --out test/data [--only NAME]
 
 Each is one synthetic frame (anny body, random room, the sensor's noise model) saved as
 `depth_mm` (uint16, the 16UC1 image), `K`, `vertices` (the true mesh, camera frame,
 metres) and `sensor`: the first frame of its seed sequence that meets its condition, so
-the choice is the seed's, not a pick of easy frames.
+the choice is the seed's, not a pick of easy frames (or, given `sweep`, that frame of
+the sensor sweep).
 """
 from __future__ import annotations
 
@@ -28,6 +30,11 @@ FRAMES = {
     'stereo_d435_noisy': dict(sensor='realsense_d435', depth=(3.0, 3.5), poses='templates',
                               seed=33, posture=None,
                               noise=dict(white_share=1.0, subpixel_sigma_px=0.15)),
+    # the broad-pose validation sweep's Azure Kinect NFOV frame 4 at 3.5 m (`sweep --seed
+    # 202 --poses broad`): a person reaching, and a piece of the scene the network labels
+    # as a few body parts (body score 2.6)
+    'scene_piece_azure': dict(sensor='azure_kinect_nfov', depth=(3.5, 3.56), poses='broad',
+                              sweep=(202, 4)),
 }
 
 
@@ -49,6 +56,11 @@ def make(name: str, body) -> dict:
     spec = FRAMES[name]
     sensor = SENSORS[spec['sensor']].with_noise(**spec.get('noise', {}))
     sampler = PoseSampler(body, mode=spec['poses'])
+    if 'sweep' in spec:  # that frame of the sensor sweep (tools.sweep.sweep_frames)
+        from smpl_depth_ros.tools.sweep import sweep_frames
+        seed, i = spec['sweep']
+        fr = list(sweep_frames(body, sampler, sensor, *spec['depth'], i + 1, seed))[i]
+        return _saved(fr, spec)
     if spec['posture']:
         sampler = _Posture(sampler, spec['posture'])
     p = replace(dataset.SynthParams(sensor=sensor), depth_range=spec['depth'])
@@ -59,9 +71,13 @@ def make(name: str, body) -> dict:
         uv = cam.project(fr['vertices'].astype(np.float64))
         inside = ((uv >= 0) & (uv < [cam.width, cam.height])).all(1).mean()
         if inside > 0.99 and (fr['labels'] > 0).sum() > 1500:
-            return dict(depth_mm=np.rint(fr['depth'] * 1000).astype(np.uint16), K=fr['K'],
-                        vertices=fr['vertices'], sensor=np.array(spec['sensor']))
+            return _saved(fr, spec)
     raise RuntimeError(f'no frame for {name}')
+
+
+def _saved(fr: dict, spec: dict) -> dict:
+    return dict(depth_mm=np.rint(fr['depth'] * 1000).astype(np.uint16), K=fr['K'],
+                vertices=fr['vertices'], sensor=np.array(spec['sensor']))
 
 
 def main(argv=None) -> int:
