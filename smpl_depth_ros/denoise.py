@@ -91,7 +91,7 @@ def smooth(depth: np.ndarray, noise: NoiseModel | None) -> np.ndarray:
     if not r_t.any():  # (a quiet sensor: no depth in view asks for a window)
         return depth
     idx = _index(depth)
-    sig, r = sig_t[idx], r_t[idx]
+    r = r_t[idx]
     if not r.any():
         return depth
     rows = np.flatnonzero(r.any(axis=1))
@@ -102,7 +102,7 @@ def smooth(depth: np.ndarray, noise: NoiseModel | None) -> np.ndarray:
     c0, c1 = max(cols[0] - R, 0), min(cols[-1] + R + 1, depth.shape[1])
     z = np.asarray(depth[r0:r1, c0:c1], np.float32)
     rr = r[r0:r1, c0:c1]
-    thr = K_SIGMA * sig[r0:r1, c0:c1]
+    thr = K_SIGMA * sig_t[idx[r0:r1, c0:c1]]  # sigma looked up in the window only
     out = _pass(_pass(z, rr, thr, axis=1), rr, thr, axis=0)
     res = np.array(depth, np.float32, copy=True)
     res[r0:r1, c0:c1] = out
